@@ -1,0 +1,221 @@
+"""KITTI raw drives: monocular snippets and stereo pairs for training, OXTS ground-truth poses when present.
+
+Layout::
+
+    ROOT/DATE/calib_cam_to_cam.txt                      P_rect_02, P_rect_03 (3x4), R_rect_00
+    ROOT/DATE/calib_velo_to_cam.txt, calib_imu_to_velo.txt   R, T (only needed for OXTS poses)
+    ROOT/DATE/DATE_drive_XXXX_sync/image_02/data/*.png|jpg   left colour camera (image_03: right)
+    ROOT/DATE/DATE_drive_XXXX_sync/oxts/data/*.txt           GPS/IMU packets, optional
+
+``root`` may also be a single DATE folder.
+
+Convention:
+    - Samples follow :mod:`dfvo.data` keys: ``image`` (frame i of camera 2), ``image_prev``/``image_next``
+      (frames i∓1, temporal mode: i runs over 1..N-2), ``image_right`` and ``T_right_left`` (stereo), ``K``
+      (3,3) of camera 2 at the working resolution, ``index``, and ``pose``/``pose_prev``/``pose_next`` (T_w_c of
+      the rectified camera 2, first frame of the drive = identity) when OXTS data exists.
+    - OXTS to pose follows the KITTI raw devkit: Mercator projection with the scale ``cos(lat_0)`` of the first
+      packet, ``R = Rz(yaw) Ry(pitch) Rx(roll)``, IMU frame x forward, y left, z up.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from dfvo.data.calibration import (
+    camera_from_rectified_cam0,
+    intrinsics_from_projection,
+    read_raw_projections,
+    read_raw_rectification,
+    read_rigid_transform,
+    stereo_baseline,
+    stereo_transform,
+)
+from dfvo.data.image_io import DatasetError, image_size, list_images, read_image, require_dir, require_file
+from dfvo.data.transforms import check_working_size, resize_with_intrinsics
+
+EARTH_RADIUS_M = 6378137.0
+
+
+def _rot_x(a: np.ndarray) -> np.ndarray:
+    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def _rot_y(a: np.ndarray) -> np.ndarray:
+    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def _rot_z(a: np.ndarray) -> np.ndarray:
+    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def oxts_to_imu_poses(oxts: np.ndarray) -> np.ndarray:
+    """IMU poses from OXTS packets, relative to the first packet.
+
+    Args:
+        oxts: (N,>=6) rows ``lat (deg), lon (deg), alt (m), roll, pitch, yaw (rad), ...``.
+
+    Returns:
+        (N,4,4) float64 ``T_imu0_imui`` (first = identity); the world frame is east-north-up before the
+        normalisation by the first pose.
+    """
+    if oxts.ndim != 2 or oxts.shape[1] < 6:
+        raise ValueError(f"oxts must be (N, >=6) [lat, lon, alt, roll, pitch, yaw, ...], got {oxts.shape}")
+    lat, lon, alt = oxts[:, 0], oxts[:, 1], oxts[:, 2]
+    scale = np.cos(np.deg2rad(lat[0]))
+    T = np.tile(np.eye(4), (len(oxts), 1, 1))
+    T[:, 0, 3] = scale * np.deg2rad(lon) * EARTH_RADIUS_M
+    T[:, 1, 3] = scale * EARTH_RADIUS_M * np.log(np.tan(np.deg2rad(90.0 + lat) / 2.0))
+    T[:, 2, 3] = alt
+    T[:, :3, :3] = _rot_z(oxts[:, 5]) @ _rot_y(oxts[:, 4]) @ _rot_x(oxts[:, 3])
+    return np.linalg.inv(T[0]) @ T
+
+
+def read_oxts_folder(folder: str | Path) -> np.ndarray:
+    """All packets of an ``oxts/data`` folder (one ``*.txt`` per frame, sorted by name) as (N,30) float64."""
+    folder = require_dir(folder, "KITTI raw oxts")
+    files = sorted(folder.glob("*.txt"))
+    if not files:
+        raise DatasetError(f"KITTI raw oxts: folder {folder} has no *.txt packets")
+    rows = []
+    for f in files:
+        try:
+            vals = [float(tok) for tok in f.read_text().split()]
+        except ValueError as err:
+            raise DatasetError(f"oxts packet {f}: expected numbers ({err})") from err
+        if len(vals) < 6:
+            raise DatasetError(f"oxts packet {f}: expected at least 6 numbers (lat lon alt roll pitch yaw), "
+                               f"found {len(vals)}")
+        rows.append(vals[:30] + [0.0] * (30 - min(len(vals), 30)))
+    return np.asarray(rows, dtype=np.float64)
+
+
+def imu_to_camera(date_dir: str | Path, camera: int = 2) -> np.ndarray:
+    """(4,4) ``T_cam_imu`` of rectified camera ``camera`` from the three calibration files of a date folder."""
+    date_dir = Path(date_dir)
+    cam_file = require_file(date_dir / "calib_cam_to_cam.txt", "KITTI raw camera calibration")
+    T_velo_imu = read_rigid_transform(require_file(date_dir / "calib_imu_to_velo.txt", "KITTI raw IMU calibration"))
+    T_cam0_velo = read_rigid_transform(require_file(date_dir / "calib_velo_to_cam.txt", "KITTI raw velo calibration"))
+    P = read_raw_projections(cam_file, (camera,))[camera]
+    return camera_from_rectified_cam0(P) @ read_raw_rectification(cam_file) @ T_cam0_velo @ T_velo_imu
+
+
+def oxts_camera_poses(drive_dir: str | Path, camera: int = 2) -> np.ndarray | None:
+    """Ground-truth ``T_w_c`` (N,4,4) of a raw drive's rectified camera, first = identity; None without oxts."""
+    drive_dir = Path(drive_dir)
+    oxts_dir = drive_dir / "oxts" / "data"
+    if not oxts_dir.is_dir():
+        return None
+    T_imu0_imu = oxts_to_imu_poses(read_oxts_folder(oxts_dir))
+    T_cam_imu = imu_to_camera(drive_dir.parent, camera)
+    return T_cam_imu @ T_imu0_imu @ np.linalg.inv(T_cam_imu)
+
+
+def _find_drives(root: Path, drives: list[str] | None) -> list[Path]:
+    """Drive folders ``DATE/DATE_drive_XXXX_sync`` under ``root`` (a dataset root or one DATE folder)."""
+    date_dirs = [root] if (root / "calib_cam_to_cam.txt").is_file() else sorted(p for p in root.iterdir() if p.is_dir())
+    available = {d.name: d for date in date_dirs for d in sorted(date.glob("*_drive_*_sync")) if d.is_dir()}
+    if drives is None:
+        if not available:
+            raise DatasetError(f"KITTI raw root {root} contains no DATE/DATE_drive_XXXX_sync folders")
+        return list(available.values())
+    chosen = []
+    for name in drives:
+        key = Path(name).name
+        key = key if key.endswith("_sync") else f"{key}_sync"
+        if key not in available:
+            raise DatasetError(f"KITTI raw drive {name!r} not found under {root} (expected folder "
+                               f"DATE/{key}; available: {sorted(available)})")
+        chosen.append(available[key])
+    return chosen
+
+
+class _Drive:
+    """File lists, calibration and optional poses of one raw drive (camera 2 left, camera 3 right)."""
+
+    def __init__(self, drive_dir: Path, stereo: bool, size: tuple[int, int] | None) -> None:
+        self.dir = drive_dir
+        self.left = list_images(drive_dir / "image_02" / "data", "KITTI raw left camera (image_02/data)")
+        self.right = None
+        if stereo:
+            self.right = list_images(drive_dir / "image_03" / "data", "KITTI raw right camera (image_03/data)")
+            if len(self.right) != len(self.left):
+                raise DatasetError(f"{drive_dir}: image_02/data has {len(self.left)} images but image_03/data has "
+                                   f"{len(self.right)}; expected equal counts")
+        cam_file = require_file(drive_dir.parent / "calib_cam_to_cam.txt", "KITTI raw camera calibration")
+        proj = read_raw_projections(cam_file, (2, 3))
+        self.baseline = stereo_baseline(proj[2], proj[3])
+        self.native_size = image_size(self.left[0])
+        self.size = size if size is not None else self.native_size
+        K = torch.as_tensor(intrinsics_from_projection(proj[2]), dtype=torch.float32)
+        _, self.K = resize_with_intrinsics(torch.zeros(1, *self.native_size), K, *self.size)
+        poses = oxts_camera_poses(drive_dir, 2)
+        if poses is not None and len(poses) != len(self.left):
+            raise DatasetError(f"{drive_dir}: oxts/data has {len(poses)} packets but image_02/data has "
+                               f"{len(self.left)} images; expected one packet per image")
+        self.poses = poses
+
+    def load(self, path: Path) -> torch.Tensor:
+        return read_image(path, size=self.size, expected_size=self.native_size)
+
+
+class KittiRawSnippets(Dataset):
+    """Training samples from KITTI raw drives: frame i of camera 2 with i±1 and/or its camera-3 partner.
+
+    Args:
+        root: dataset root (holding DATE folders) or one DATE folder.
+        height: working height (None with width None: native resolution).
+        width: working width.
+        drives: drive folder names (``2011_09_26_drive_0001_sync``; ``_sync`` and a ``DATE/`` prefix optional);
+            None: every drive found.
+        stereo: add ``image_right`` and ``T_right_left``.
+        temporal: add ``image_prev``/``image_next`` (targets are then frames 1..N-2 of each drive).
+
+    Raises:
+        DatasetNotFoundError: missing root, image folder or calibration file.
+        DatasetError: no drives / images, unknown drive, mismatched left/right or image/oxts counts, calibration
+            without P_rect_02/P_rect_03.
+    """
+
+    def __init__(self, root: str | Path, height: int | None, width: int | None, drives: list[str] | None = None,
+                 stereo: bool = True, temporal: bool = True) -> None:
+        if not (stereo or temporal):
+            raise ValueError("KittiRawSnippets: at least one of stereo / temporal must be True")
+        self.root = require_dir(root, "KITTI raw root")
+        size = check_working_size(height, width, f"KittiRawSnippets({self.root})")
+        self.stereo, self.temporal = stereo, temporal
+        self.drives = [_Drive(d, stereo, size) for d in _find_drives(self.root, drives)]
+        margin = 1 if temporal else 0
+        self.samples: list[tuple[int, int]] = [(k, i) for k, drive in enumerate(self.drives)
+                                               for i in range(margin, len(drive.left) - margin)]
+        if not self.samples:
+            raise DatasetError(f"KITTI raw under {self.root}: no drive has enough frames for snippets "
+                               f"(temporal={temporal} needs at least 3 per drive)")
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        k, i = self.samples[index]
+        drive = self.drives[k]
+        sample: dict[str, torch.Tensor] = {"image": drive.load(drive.left[i]), "K": drive.K.clone(),
+                                           "index": torch.tensor(i)}
+        if self.temporal:
+            sample["image_prev"] = drive.load(drive.left[i - 1])
+            sample["image_next"] = drive.load(drive.left[i + 1])
+        if self.stereo and drive.right is not None:
+            sample["image_right"] = drive.load(drive.right[i])
+            sample["T_right_left"] = stereo_transform(drive.baseline)
+        if drive.poses is not None:
+            sample["pose"] = torch.as_tensor(drive.poses[i], dtype=torch.float32)
+            if self.temporal:
+                sample["pose_prev"] = torch.as_tensor(drive.poses[i - 1], dtype=torch.float32)
+                sample["pose_next"] = torch.as_tensor(drive.poses[i + 1], dtype=torch.float32)
+        return sample

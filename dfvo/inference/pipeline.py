@@ -1,0 +1,245 @@
+"""The inference loop: frames → flow and depth sources → :class:`dfvo.tracking.VisualOdometry` → files.
+
+Convention:
+    Flow and depth are computed for ``batch_size`` consecutive frame pairs at once (one network batch), and the
+    tracker takes the same pairs as one batch (``VisualOdometry.run``: selection and E-RANSAC batched, the rest in
+    order). Frame 0's pose is the identity; frame k's pose ``T_w_k`` is
+    written to ``OUT/SEQ.txt`` (KITTI format) as soon as it is known, with its row of ``frames.csv``.
+    Depth given to the tracker is the depth of the earlier frame of each pair, in metres.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from dfvo.inference.frames import FrameSequence, build_sequence
+from dfvo.inference.outputs import FramesCsv, PoseWriter, fallback_summary, write_json
+from dfvo.sources import build_depth_source, build_flow_source
+
+__all__ = ["run_inference", "tracker_config", "TRACKER_GROUPS"]
+
+log = logging.getLogger("dfvo.infer")
+
+TRACKER_GROUPS = ("tracker", "correspondence", "scale", "model_selection")
+
+
+def tracker_config(cfg: DictConfig) -> Any:
+    """Build a :class:`dfvo.tracking.TrackerConfig` from the groups ``tracker``, ``correspondence``, ``scale``,
+    ``model_selection`` (keys named ``name`` are labels; every other key must be a TrackerConfig field)."""
+    from dfvo.tracking import TrackerConfig
+
+    valid = {f.name for f in fields(TrackerConfig)}
+    kwargs: dict[str, Any] = {}
+    for group in TRACKER_GROUPS:
+        values = OmegaConf.to_container(cfg[group], resolve=True) if cfg.get(group) is not None else {}
+        for key, value in values.items():
+            if key == "name":
+                continue
+            if key not in valid:
+                raise ValueError(f"conf/{group}: unknown tracker setting {key!r}; TrackerConfig fields are "
+                                 f"{sorted(valid)}")
+            kwargs[key] = tuple(value) if isinstance(value, list) else value
+    return TrackerConfig(**kwargs)
+
+
+def _diag_row(frame: int, diag: dict[str, Any]) -> dict[str, Any]:
+    row = dict(diag)
+    row["frame"] = frame
+    tracker = str(diag.get("tracker", ""))
+    reason = str(diag.get("fallback_reason") or "")
+    row["constant_motion"] = int("const" in tracker.lower())
+    pnp_ok = diag.get("pnp_success")
+    reason = reason.lower()
+    row["pnp_failed"] = int(pnp_ok is False or (pnp_ok is None and "pnp" in reason and "fail" in reason))
+    return row
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.total: dict[str, float] = {}
+
+    def add(self, key: str, seconds: float) -> None:
+        self.total[key] = self.total.get(key, 0.0) + seconds
+
+
+def _tensorboard(cfg: DictConfig, out: Path) -> Any:
+    if not cfg.get("tensorboard", {}).get("enabled", False):
+        return None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(out / "tensorboard"))
+
+
+def run_inference(cfg: DictConfig) -> dict[str, Any]:
+    """Run DF-VO on one sequence and write its outputs (see :mod:`dfvo.inference.outputs`).
+
+    Args:
+        cfg: the composed ``conf/infer.yaml`` (groups ``data``, ``img_res``, ``flow``, ``depth``, the tracker
+            groups; ``seq``, ``out_dir``, ``batch_size``, ``online_finetune``, ``tensorboard``, ``align``).
+
+    Returns:
+        Summary dict (also written to ``OUT/summary.json``): sequence, frames, fps, timing, fallback, metrics.
+    """
+    if cfg.get("num_threads"):
+        torch.set_num_threads(int(cfg.num_threads))
+    device = str(cfg.get("device", "cpu"))
+    seq = build_sequence(cfg.data, cfg.get("seq"), cfg.img_res)
+    if seq.length < 2:
+        raise ValueError(f"sequence {seq.name} has {seq.length} frame(s); expected at least 2")
+    flow_src = build_flow_source(cfg.flow, seq.world, device)
+    depth_src = build_depth_source(cfg.depth, seq.world, device)
+    from dfvo.tracking import VisualOdometry
+
+    vo = VisualOdometry(tracker_config(cfg))
+    sources = {"flow": flow_src.name, "depth": depth_src.name,
+               "flow_checkpoint": str(getattr(flow_src, "checkpoint", "")) or None,
+               "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None}
+    finetuner = None
+    if cfg.get("online_finetune", False):
+        if not hasattr(flow_src, "model"):
+            raise ValueError("online_finetune=true needs flow=network (the oracle flow cannot be finetuned)")
+        from dfvo.training.online_flow import OnlineFlowConfig, OnlineFlowFinetuner
+
+        ocfg = OnlineFlowConfig(**OmegaConf.to_container(cfg.get("online", {}) or {}, resolve=True))
+        finetuner = OnlineFlowFinetuner(flow_src.model, ocfg)
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    writer = _tensorboard(cfg, out)
+    try:
+        summary = _loop(cfg, seq, flow_src, depth_src, vo, finetuner, out, writer, device)
+    finally:
+        if writer is not None:
+            writer.close()
+    summary["sources"] = sources
+    summary["online_finetune"] = finetuner is not None
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, depth_src: Any, vo: Any, finetuner: Any, out: Path,
+          writer: Any, device: str) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    poses = PoseWriter(out / f"{seq.name}.txt")
+    table = FramesCsv(out / "frames.csv")
+    K = seq.K.to(device)[None]
+    T_w = np.eye(4)
+    poses.write(T_w)
+    table.write({"frame": 0, "tracker": "init"})
+    traj, rows, timer = [T_w.copy()], [], _Timer()
+    batch = max(1, int(cfg.get("batch_size", 4)))
+    n_pairs = seq.length - 1
+    bar = tqdm(total=n_pairs, desc=f"dfvo {seq.name}", unit="frame", disable=not cfg.get("progress", True))
+    start_wall = time.perf_counter()
+    t0 = time.perf_counter()
+    prev_img = seq.image(0)[None].to(device)
+    timer.add("load", time.perf_counter() - t0)
+    try:
+        for first in range(0, n_pairs, batch):
+            idx = list(range(first, min(first + batch, n_pairs)))
+            t0 = time.perf_counter()
+            imgs = torch.cat([prev_img] + [seq.image(i + 1)[None].to(device) for i in idx])
+            timer.add("load", time.perf_counter() - t0)
+            prev_img = imgs[-1:]
+            t0 = time.perf_counter()
+            if finetuner is not None and finetuner.active:
+                for k in range(len(idx)):
+                    finetuner.step(imgs[k:k + 1], imgs[k + 1:k + 2])
+                timer.add("finetune", time.perf_counter() - t0)
+                t0 = time.perf_counter()
+            flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)
+            t_flow = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            depth = depth_src(imgs[:-1], idx)
+            t_depth = time.perf_counter() - t0
+            timer.add("flow", t_flow)
+            timer.add("depth", t_depth)
+            t0 = time.perf_counter()
+            results = vo.run(flow_fwd, flow_bwd, depth, K.expand(len(idx), 3, 3), batch_size=len(idx))
+            t_track = (time.perf_counter() - t0) / len(idx)
+            for k, (i, res) in enumerate(zip(idx, results)):
+                timer.add("tracker", t_track)
+                diag = dict(res.diagnostics)
+                for key, v in diag.items():
+                    if key.startswith("time_") and isinstance(v, float | int):
+                        timer.add(key[5:], float(v))
+                T_w = res.T_w_cur.detach().cpu().double().numpy()
+                poses.write(T_w)
+                traj.append(T_w.copy())
+                row = _diag_row(i + 1, diag)
+                row.update(t_flow=t_flow / len(idx), t_depth=t_depth / len(idx), t_tracker=t_track)
+                table.write(row)
+                rows.append(row)
+                if writer is not None and (i % int(cfg.tensorboard.get("every", 10)) == 0):
+                    from dfvo.inference.tb_logging import log_frame
+
+                    log_frame(writer, i + 1, imgs[k], flow_fwd[k], flow_bwd[k], depth[k], row, cfg)
+            bar.update(len(idx))
+            bar.set_postfix(fps=f"{(first + len(idx)) / (time.perf_counter() - start_wall):.2f}")
+    except KeyboardInterrupt:
+        log.warning("interrupted: %s holds the first %d poses", poses.path, poses.count)
+        raise
+    finally:
+        bar.close()
+        poses.close()
+        table.close()
+    wall = time.perf_counter() - start_wall
+    return _finish(cfg, seq, np.stack(traj), rows, timer, wall, out, writer)
+
+
+def _choices() -> dict[str, str]:
+    """The config-group choices of this Hydra job (empty outside Hydra), for the ablation table."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return {}
+    return {k: str(v) for k, v in HydraConfig.get().runtime.choices.items() if not k.startswith("hydra")}
+
+
+def _finish(cfg: DictConfig, seq: FrameSequence, pred: np.ndarray, rows: list[dict[str, Any]], timer: _Timer,
+            wall: float, out: Path, writer: Any) -> dict[str, Any]:
+    n_pairs = len(rows)
+    summary: dict[str, Any] = {
+        "sequence": seq.name, "frames": seq.length, "pose_file": str(out / f"{seq.name}.txt"),
+        "fps": n_pairs / wall if wall > 0 else None, "wall_s": wall,
+        "timing_ms_per_frame": {k: 1000 * v / max(n_pairs, 1) for k, v in timer.total.items()},
+        "fallback": fallback_summary(rows, float(cfg.get("warn_fallback_rate", 0.2))),
+        "choices": _choices(),
+    }
+    from dfvo.eval import evaluate_trajectory, plot_trajectory
+
+    metrics = None
+    if seq.poses is not None:
+        metrics = {"sequence": seq.name, **evaluate_trajectory(seq.poses, pred, align=str(cfg.align))}
+        write_json(out / "metrics.json", metrics)
+    plot_trajectory(seq.poses, pred, out / "trajectory.png", title=seq.name)
+    summary["metrics"] = metrics
+    write_json(out / "summary.json", summary)
+    if writer is not None:
+        from dfvo.inference.tb_logging import log_trajectory
+
+        log_trajectory(writer, seq.poses, pred, metrics)
+    fb = summary["fallback"]
+    log.info("%s: %d frames, %.2f FPS, timing ms/frame %s", seq.name, seq.length, summary["fps"] or 0.0,
+             {k: round(v, 1) for k, v in summary["timing_ms_per_frame"].items()})
+    if metrics is not None:
+        log.info("metrics: %s", {k: v for k, v in metrics.items() if not isinstance(v, dict | list)})
+    if fb["warn"]:
+        msg = (f"\n{'!' * 78}\nWARNING: {fb['constant_motion']}/{fb['frames']} frames "
+               f"({100 * fb['constant_motion_rate']:.0f}%) fell back to constant motion and PnP failed on "
+               f"{fb['pnp_failed']} ({100 * fb['pnp_failed_rate']:.0f}%).\nThe trajectory is unreliable: check the "
+               f"flow/depth sources, the image resolution and the intrinsics (see {out / 'frames.csv'}).\n"
+               f"{'!' * 78}")
+        log.warning("%d/%d frames fell back to constant motion, PnP failed on %d", fb["constant_motion"],
+                    fb["frames"], fb["pnp_failed"])
+        print(msg, file=sys.stderr, flush=True)
+    return summary

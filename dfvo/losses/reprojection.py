@@ -1,0 +1,67 @@
+"""Warp a source view into the target view by the target's depth and the relative pose.
+
+Convention:
+    ``T_source_target`` (B,4,4) maps points of the target camera into the source camera (for the stereo
+    partner of a left target: ``T_right_left``). Pixel centres as in :mod:`dfvo.geometry.camera`;
+    sampling with ``grid_sample(align_corners=True)`` at ``2u/(W-1) - 1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from kornia.core.check import KORNIA_CHECK_SHAPE
+
+from dfvo.geometry.camera import backproject_points, pixel_grid, project_points, transform_points
+
+
+@dataclass
+class Reprojection:
+    """Result of :func:`reproject`.
+
+    Attributes:
+        warped: (B,C,H,W) source sampled at the projection of each target pixel.
+        valid: (B,1,H,W) bool, the projection lies in front of the source camera and inside its image.
+        depth_in_source: (B,1,H,W) z of each target pixel's 3-D point in the source camera.
+        grid: (B,H,W,2) normalised sampling grid (reuse it to sample other maps of the source view).
+    """
+
+    warped: torch.Tensor
+    valid: torch.Tensor
+    depth_in_source: torch.Tensor
+    grid: torch.Tensor
+
+
+def reproject(source: torch.Tensor, depth_target: torch.Tensor, T_source_target: torch.Tensor,
+              K: torch.Tensor) -> Reprojection:
+    """Inverse-warp ``source`` into the target view.
+
+    Args:
+        source: (B,C,H,W) source image (or any map of the source view).
+        depth_target: (B,1,H,W) depth of the target view.
+        T_source_target: (B,4,4) target camera -> source camera.
+        K: (B,3,3) intrinsics of both views at this resolution.
+
+    Returns:
+        :class:`Reprojection`.
+    """
+    KORNIA_CHECK_SHAPE(source, ["B", "C", "H", "W"])
+    KORNIA_CHECK_SHAPE(depth_target, ["B", "1", "H", "W"])
+    KORNIA_CHECK_SHAPE(T_source_target, ["B", "4", "4"])
+    KORNIA_CHECK_SHAPE(K, ["B", "3", "3"])
+    B, _, H, W = depth_target.shape
+    if source.shape[-2:] != (H, W):
+        raise ValueError(f"reproject: source {tuple(source.shape)} and depth {tuple(depth_target.shape)} differ")
+    grid = pixel_grid(H, W, depth_target.device, depth_target.dtype).reshape(1, H * W, 2).expand(B, -1, -1)
+    points = backproject_points(grid, depth_target.reshape(B, H * W), K)
+    pix, z = project_points(transform_points(T_source_target.to(points.dtype), points), K)
+    u, v = pix[..., 0], pix[..., 1]
+    tol = 1e-3  # pixels: border pixels reprojected onto themselves stay inside despite rounding
+    valid = ((z > 1e-3) & (u >= -tol) & (u <= W - 1 + tol) & (v >= -tol) & (v <= H - 1 + tol)
+             & torch.isfinite(u) & torch.isfinite(v))
+    norm = torch.stack([2.0 * u / max(W - 1, 1) - 1.0, 2.0 * v / max(H - 1, 1) - 1.0], dim=-1)
+    norm = torch.where(valid[..., None], norm, torch.full_like(norm, 2.0)).reshape(B, H, W, 2)
+    warped = F.grid_sample(source, norm, mode="bilinear", padding_mode="border", align_corners=True)
+    return Reprojection(warped, valid.reshape(B, 1, H, W), z.reshape(B, 1, H, W), norm)

@@ -1,0 +1,74 @@
+"""Backward warping of an image (or any feature map) by an optical-flow field.
+
+Convention:
+    - Pixel coordinates follow :mod:`dfvo.geometry.camera`: continuous, the centre of the top-left pixel is
+      (0, 0), u is the column and v the row. Pixel centres therefore span ``[0, W-1] x [0, H-1]``.
+    - ``flow`` (B,2,H,W) is given on the pixels x of the *target* grid; channel 0 is the u (column)
+      displacement and channel 1 the v (row) displacement, in pixels. The warped map at x is
+      ``source(x + flow(x))``, bilinearly interpolated.
+    - Sampling uses ``grid_sample(..., align_corners=True)`` with the coordinate normalisation
+      ``2*u/(W-1) - 1``: with ``align_corners=True`` the normalised values -1 and +1 are the *centres* of the
+      first and last pixels, which is exactly the pixel-centre convention above. (Mixing the two conventions
+      shifts every sample by up to half a pixel; the official DF-VO code failed silently that way when
+      PyTorch changed the default of ``align_corners``.)
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
+
+from dfvo.geometry.camera import pixel_grid
+
+
+def flow_to_sample_points(flow: torch.Tensor) -> torch.Tensor:
+    """Absolute target positions ``x + flow(x)`` in pixels.
+
+    Args:
+        flow: (B,2,H,W) flow in pixels.
+
+    Returns:
+        (B,H,W,2) positions (u, v) in pixels.
+    """
+    KORNIA_CHECK_SHAPE(flow, ["B", "2", "H", "W"])
+    _, _, H, W = flow.shape
+    grid = pixel_grid(H, W, device=flow.device, dtype=flow.dtype)
+    return grid.unsqueeze(0) + flow.permute(0, 2, 3, 1)
+
+
+def inside_image(points: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Whether (..., 2) pixel positions lie within the pixel-centre rectangle ``[0, W-1] x [0, H-1]``.
+
+    Non-finite positions are outside.
+    """
+    u, v = points[..., 0], points[..., 1]
+    return (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+
+
+def warp_by_flow(source: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample ``source`` at ``x + flow(x)`` (bilinear backward warping).
+
+    Args:
+        source: (B,C,H,W) map to sample, e.g. image j or the backward flow j->i.
+        flow: (B,2,H,W) flow i->j in pixels, defined on the pixels of image i.
+
+    Returns:
+        warped: (B,C,H,W) ``source`` sampled at ``x + flow(x)``; where the target is outside the image the
+            value is the border-clamped sample (do not use it: see ``valid``).
+        valid: (B,1,H,W) bool, False where the target lies outside the image of ``source`` (or is not finite).
+    """
+    KORNIA_CHECK_SHAPE(source, ["B", "C", "H", "W"])
+    KORNIA_CHECK_SHAPE(flow, ["B", "2", "H", "W"])
+    KORNIA_CHECK(source.shape[0] == flow.shape[0] and source.shape[-2:] == flow.shape[-2:],
+                 f"warp_by_flow: source {tuple(source.shape)} and flow {tuple(flow.shape)} must share B, H, W")
+    _, _, H, W = source.shape
+    target = flow_to_sample_points(flow.to(source.dtype))
+    valid = inside_image(target, H, W).unsqueeze(1)
+    # Normalised coordinates for align_corners=True: pixel centre 0 -> -1 and W-1 -> +1.
+    norm_u = 2.0 * target[..., 0] / max(W - 1, 1) - 1.0
+    norm_v = 2.0 * target[..., 1] / max(H - 1, 1) - 1.0
+    grid = torch.stack([norm_u, norm_v], dim=-1)
+    grid = torch.nan_to_num(grid, nan=0.0, posinf=2.0, neginf=-2.0)
+    warped = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return warped, valid

@@ -1,0 +1,253 @@
+"""Correspondence selection from a forward flow and its forward-backward inconsistency.
+
+Convention:
+    - ``flow_fwd`` (B,2,H,W): flow i->j in pixels on image i; ``inconsistency`` (B,1,H,W) in pixels on image i
+      (``+inf`` = unusable, e.g. the target leaves image j); see :mod:`dfvo.matching.consistency`.
+    - Output correspondences are padded to ``num``: ``pts_i`` (B,N,2) are integer pixel centres (u, v) of image
+      i, ``pts_j = pts_i + flow_fwd(pts_i)`` (B,N,2) their positions in image j, ``mask`` (B,N) says which rows
+      are real. Padded rows hold zeros and ``mask=False``.
+    - ``crop_top`` ignores the top ``round(crop_top*H)`` rows (the official code drops the top 30% for depth
+      use); the region grid then tiles the remaining rows ``[top, H)``.
+
+Methods:
+    - ``local_best_k`` (the paper's reference): the image is split into ``grid`` regions (row/column edges
+      ``floor(k*H/gh)``, so sizes differ by at most one pixel when H, W are not divisible); only pixels with
+      inconsistency ``< max_inconsistency`` are valid; each region j gives its ``K_j = min(K, Q_j)`` most
+      consistent valid pixels, ``K = num // regions`` and Q_j its number of valid pixels (when ``num`` is
+      smaller than the number of regions, the ``num`` most consistent region winners).
+    - ``best_n``: the ``num`` pixels with the smallest finite inconsistency over the whole (cropped) image.
+    - ``uniform``: a regular grid of about ``num`` pixel centres covering the (cropped) image; with a
+      ``generator``, ``num`` distinct pixels drawn uniformly at random instead. Rows whose inconsistency is
+      not finite are masked out.
+
+Failure rule (all methods, the official one): with "valid" meaning inconsistency ``< max_inconsistency`` for
+``local_best_k`` and finite for the other two, a frame fails when it has fewer than
+``min_valid_fraction * num`` valid pixels, or when fewer than ``min_region_fraction`` of the regions contain a
+valid pixel. A failed frame keeps whatever was selected (for diagnostics) but ``failed[b]`` is True and
+``reasons[b]`` says why; trackers must not use it (constant-motion fallback).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import torch
+from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
+
+METHODS = ("local_best_k", "best_n", "uniform")
+
+
+@dataclass
+class Correspondences:
+    """Padded 2-D/2-D correspondences between image i and image j for B frame pairs.
+
+    Attributes:
+        pts_i: (B,N,2) pixel positions (u, v) in image i.
+        pts_j: (B,N,2) positions in image j (``pts_i + flow_fwd(pts_i)``).
+        mask: (B,N) bool, True for real rows.
+        inconsistency: (B,N) forward-backward inconsistency of each row in pixels (0 in padded rows).
+        failed: (B,) bool, True when frame b failed the selection rule.
+        reasons: per frame, why it failed (None when it did not).
+    """
+
+    pts_i: torch.Tensor
+    pts_j: torch.Tensor
+    mask: torch.Tensor
+    inconsistency: torch.Tensor
+    failed: torch.Tensor
+    reasons: list[str | None]
+
+    @property
+    def num_valid(self) -> torch.Tensor:
+        """(B,) number of real rows per frame."""
+        return self.mask.sum(dim=1)
+
+
+def _edges(length: int, parts: int) -> list[int]:
+    return [(k * length) // parts for k in range(parts + 1)]
+
+
+@lru_cache(maxsize=32)
+def _region_index(height: int, width: int, top: int, grid: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat pixel indices of each region, padded with the sentinel ``H*W``.
+
+    Returns:
+        index: (R, P) long, P = the largest region size; region r = row block r // gw, column block r % gw.
+        region_of_pixel: (H*W,) long region id of each pixel (-1 for cropped rows).
+    """
+    gh, gw = grid
+    rows = _edges(height - top, gh)
+    cols = _edges(width, gw)
+    region_of_pixel = torch.full((height, width), -1, dtype=torch.long)
+    blocks = []
+    for a in range(gh):
+        for c in range(gw):
+            r0, r1 = top + rows[a], top + rows[a + 1]
+            c0, c1 = cols[c], cols[c + 1]
+            region_of_pixel[r0:r1, c0:c1] = a * gw + c
+            vv, uu = torch.meshgrid(torch.arange(r0, r1), torch.arange(c0, c1), indexing="ij")
+            blocks.append((vv * width + uu).reshape(-1))
+    size = max(max(b.numel() for b in blocks), 1)
+    index = torch.full((gh * gw, size), height * width, dtype=torch.long)
+    for r, b in enumerate(blocks):
+        index[r, : b.numel()] = b
+    return index, region_of_pixel.reshape(-1)
+
+
+def _check_args(method: str, num: int, grid: tuple[int, int], crop_top: float, height: int) -> int:
+    KORNIA_CHECK(method in METHODS, f"select_correspondences: method must be one of {METHODS}, got {method!r}")
+    KORNIA_CHECK(num > 0, f"select_correspondences: num must be positive, got {num}")
+    KORNIA_CHECK(len(grid) == 2 and grid[0] > 0 and grid[1] > 0,
+                 f"select_correspondences: grid must be two positive ints (rows, cols), got {grid}")
+    KORNIA_CHECK(0.0 <= crop_top < 1.0, f"select_correspondences: crop_top must be in [0, 1), got {crop_top}")
+    top = int(round(crop_top * height))
+    KORNIA_CHECK(height - top >= grid[0], f"select_correspondences: {height - top} rows left after crop_top="
+                 f"{crop_top} cannot hold a grid of {grid[0]} region rows")
+    return top
+
+
+def _gather_rows(flow_flat: torch.Tensor, incon_flat: torch.Tensor, idx: torch.Tensor, mask: torch.Tensor,
+                 width: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pixel positions, targets and inconsistency of flat indices ``idx`` (B,N); masked rows zeroed."""
+    safe = torch.where(mask, idx, torch.zeros_like(idx))
+    u = (safe % width).to(flow_flat.dtype)
+    v = torch.div(safe, width, rounding_mode="floor").to(flow_flat.dtype)
+    pts_i = torch.stack([u, v], dim=-1)
+    flow = torch.gather(flow_flat, 2, safe.unsqueeze(1).expand(-1, 2, -1)).transpose(1, 2)
+    pts_j = pts_i + flow
+    incon = torch.gather(incon_flat, 1, safe)
+    zero = torch.zeros((), dtype=flow_flat.dtype, device=flow_flat.device)
+    m2 = mask.unsqueeze(-1)
+    return torch.where(m2, pts_i, zero), torch.where(m2, pts_j, zero), torch.where(mask, incon, zero)
+
+
+def _uniform_grid(height: int, width: int, top: int, num: int, device: torch.device) -> torch.Tensor:
+    """Flat indices of a regular grid of at most ``num`` pixel centres over rows ``[top, H)``."""
+    rows_avail = height - top
+    n_cols = max(1, min(width, int(round((num * width / rows_avail) ** 0.5))))
+    n_rows = max(1, min(rows_avail, num // n_cols))
+    u = torch.floor((torch.arange(n_cols, device=device) + 0.5) * width / n_cols).long()
+    v = top + torch.floor((torch.arange(n_rows, device=device) + 0.5) * rows_avail / n_rows).long()
+    return (v[:, None] * width + u[None, :]).reshape(-1)
+
+
+def select_correspondences(
+    flow_fwd: torch.Tensor,
+    inconsistency: torch.Tensor,
+    method: str = "local_best_k",
+    num: int = 2000,
+    grid: tuple[int, int] = (10, 10),
+    max_inconsistency: float = 0.1,
+    min_valid_fraction: float = 0.1,
+    min_region_fraction: float = 0.1,
+    crop_top: float = 0.0,
+    generator: torch.Generator | None = None,
+) -> Correspondences:
+    """Select up to ``num`` correspondences per frame pair from a forward flow.
+
+    Args:
+        flow_fwd: (B,2,H,W) flow i->j in pixels on image i.
+        inconsistency: (B,1,H,W) forward-backward inconsistency in pixels (``+inf`` = unusable).
+        method: ``"local_best_k"``, ``"best_n"`` or ``"uniform"`` (see the module docstring).
+        num: N, the number of correspondences (the padded output size).
+        grid: (rows, cols) of regions for local best-K and for the region-coverage failure test.
+        max_inconsistency: validity threshold in pixels for local best-K (strict ``<``).
+        min_valid_fraction: a frame fails with fewer than ``min_valid_fraction * num`` valid pixels.
+        min_region_fraction: a frame fails when fewer than this fraction of regions hold a valid pixel.
+        crop_top: fraction of the top rows to ignore, in [0, 1).
+        generator: with ``method="uniform"``, draw random pixels with it instead of a regular grid.
+
+    Returns:
+        :class:`Correspondences` with (B,N,...) padded rows.
+    """
+    KORNIA_CHECK_SHAPE(flow_fwd, ["B", "2", "H", "W"])
+    KORNIA_CHECK_SHAPE(inconsistency, ["B", "1", "H", "W"])
+    KORNIA_CHECK(inconsistency.shape[0] == flow_fwd.shape[0] and inconsistency.shape[-2:] == flow_fwd.shape[-2:],
+                 f"select_correspondences: inconsistency {tuple(inconsistency.shape)} must match flow_fwd "
+                 f"{tuple(flow_fwd.shape)} in B, H, W")
+    B, _, H, W = flow_fwd.shape
+    grid = (int(grid[0]), int(grid[1]))
+    top = _check_args(method, num, grid, crop_top, H)
+    device = flow_fwd.device
+    index, region_of_pixel = _region_index(H, W, top, grid)
+    index, region_of_pixel = index.to(device), region_of_pixel.to(device)
+    R = grid[0] * grid[1]
+
+    incon_flat = inconsistency.reshape(B, H * W)
+    incon_flat = torch.where(torch.isnan(incon_flat), torch.full_like(incon_flat, float("inf")), incon_flat)
+    if top > 0:
+        incon_flat = incon_flat.clone()
+        incon_flat[:, : top * W] = float("inf")
+    flow_flat = flow_fwd.reshape(B, 2, H * W)
+    finite = torch.isfinite(incon_flat)
+    valid = finite & (incon_flat < max_inconsistency) if method == "local_best_k" else finite
+
+    if method == "local_best_k":
+        k = max(1, min(num // R, index.shape[1]))
+        padded = torch.cat([incon_flat, incon_flat.new_full((B, 1), float("inf"))], dim=1)
+        padded = torch.where(torch.cat([valid, valid.new_zeros((B, 1))], 1), padded, float("inf"))
+        per_region = padded[:, index]  # (B,R,P)
+        best, pos = torch.topk(per_region, k, dim=2, largest=False, sorted=True)  # (B,R,k)
+        idx = torch.gather(index.unsqueeze(0).expand(B, -1, -1), 2, pos).reshape(B, R * k)
+        sel_mask = torch.isfinite(best).reshape(B, R * k)
+        if R * k > num:  # fewer rows than regions (num < R): keep the num most consistent region winners
+            keep = torch.topk(best.reshape(B, R * k), num, dim=1, largest=False, sorted=False).indices
+            keep = torch.sort(keep, dim=1).values
+            idx, sel_mask = torch.gather(idx, 1, keep), torch.gather(sel_mask, 1, keep)
+        elif R * k < num:
+            pad = num - R * k
+            idx = torch.cat([idx, idx.new_zeros((B, pad))], 1)
+            sel_mask = torch.cat([sel_mask, sel_mask.new_zeros((B, pad))], 1)
+        # compact the real rows to the front, keeping region-major order
+        order = torch.sort((~sel_mask).to(torch.uint8), dim=1, stable=True).indices
+        idx, sel_mask = torch.gather(idx, 1, order), torch.gather(sel_mask, 1, order)
+    elif method == "best_n":
+        n = min(num, H * W)
+        vals, idx = torch.topk(incon_flat, n, dim=1, largest=False, sorted=True)
+        sel_mask = torch.isfinite(vals)
+        if n < num:
+            idx = torch.cat([idx, idx.new_zeros((B, num - n))], 1)
+            sel_mask = torch.cat([sel_mask, sel_mask.new_zeros((B, num - n))], 1)
+    else:
+        if generator is None:
+            cells = _uniform_grid(H, W, top, num, device).unsqueeze(0).expand(B, -1)
+        else:
+            n = min(num, (H - top) * W)
+            gen_device = generator.device
+            keys = torch.rand((B, (H - top) * W), generator=generator, device=gen_device).to(device)
+            cells = torch.topk(keys, n, dim=1).indices + top * W
+        n = cells.shape[1]
+        idx = torch.cat([cells, cells.new_zeros((B, num - n))], 1)
+        sel_mask = torch.cat([torch.gather(finite, 1, cells), finite.new_zeros((B, num - n))], 1)
+
+    pts_i, pts_j, incon = _gather_rows(flow_flat, incon_flat, idx, sel_mask, W)
+    failed, reasons = _failure(valid, region_of_pixel, R, num, max_inconsistency, min_valid_fraction,
+                               min_region_fraction, method)
+    return Correspondences(pts_i, pts_j, sel_mask, incon, failed, reasons)
+
+
+def _failure(valid: torch.Tensor, region_of_pixel: torch.Tensor, R: int, num: int, max_inconsistency: float,
+             min_valid_fraction: float, min_region_fraction: float, method: str) -> tuple[torch.Tensor, list]:
+    """Apply the official failure rule; returns (B,) failed and the per-frame reasons."""
+    B = valid.shape[0]
+    n_valid = valid.sum(dim=1)
+    in_grid = region_of_pixel >= 0
+    hits = torch.zeros((B, R), dtype=torch.long, device=valid.device)
+    hits.scatter_add_(1, region_of_pixel.clamp_min(0).unsqueeze(0).expand(B, -1), (valid & in_grid).long())
+    regions_hit = (hits > 0).sum(dim=1)
+    need_valid = min_valid_fraction * num
+    need_regions = min_region_fraction * R
+    few_valid = n_valid.to(torch.float64) < need_valid
+    few_regions = regions_hit.to(torch.float64) < need_regions
+    failed = few_valid | few_regions
+    what = f"inconsistency < {max_inconsistency} px" if method == "local_best_k" else "a flow target in the image"
+    reasons: list[str | None] = []
+    for b in range(B):
+        parts = []
+        if bool(few_valid[b]):
+            parts.append(f"only {int(n_valid[b])} pixels with {what} (need >= {need_valid:g})")
+        if bool(few_regions[b]):
+            parts.append(f"valid pixels in only {int(regions_hit[b])} of {R} regions (need >= {need_regions:g})")
+        reasons.append("; ".join(parts) if parts else None)
+    return failed, reasons

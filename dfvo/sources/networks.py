@@ -1,0 +1,183 @@
+"""Network sources: trained flow and depth checkpoints, loaded safely (tensors only, no pickled code).
+
+Accepted checkpoint files:
+    - ``.safetensors`` (the shipped format; optional metadata ``variant`` for the flow network),
+    - ``.pt`` / ``.pth`` / ``.ckpt`` read with ``torch.load(weights_only=True)``: a state dict, or a Lightning
+      checkpoint whose ``state_dict`` holds the network under a prefix (``net.``, ``flow_net.``, ``depth_net.``,
+      ``depth.``, ``model.``); the prefix that matches the expected network is stripped.
+
+Convention:
+    Images (B,3,H,W) float in [0,1]; flow (B,2,H,W) in pixels of the input; depth (B,1,H,W) in metres after
+    multiplying the network depth by ``depth_scale`` (5.4 for a monodepth2-style stereo model trained with a
+    0.1 baseline on KITTI's 0.54 m rig; 1.0 for models trained with the true baseline or monocular ones).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from kornia.core.check import KORNIA_CHECK_SHAPE
+from torch import nn
+
+from dfvo.models.depth_net import DepthNet
+from dfvo.models.flow_net import FlowNet
+
+__all__ = ["CheckpointError", "load_weights", "NetworkFlow", "NetworkDepth"]
+
+VARIANTS = ("default", "small", "tiny")
+PREFIXES = ("", "net.", "flow_net.", "flow.", "depth_net.", "depth.", "model.")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, unreadable, unsafe, or does not hold the expected network."""
+
+
+def _read_state(path: Path, expected: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    if not path.is_file():
+        raise CheckpointError(f"{expected} checkpoint {path} does not exist (set {expected.split()[0]}.checkpoint= to "
+                              f"a .safetensors/.pt/.ckpt file holding a {expected}, or use the oracle source on "
+                              f"synthetic data)")
+    if path.suffix == ".safetensors":
+        from safetensors import safe_open
+        try:
+            with safe_open(str(path), framework="pt") as f:
+                meta = dict(f.metadata() or {})
+                return {k: f.get_tensor(k) for k in f.keys()}, meta
+        except Exception as err:  # safetensors raises its own error types
+            raise CheckpointError(f"{expected} checkpoint {path}: not a readable safetensors file ({err})") from err
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise CheckpointError(f"{expected} checkpoint {path}: cannot be loaded as weights only ({type(err).__name__}: "
+                              f"{str(err).splitlines()[0][:200]}); export the network's state dict to .safetensors "
+                              f"(safetensors.torch.save_file) — pickled objects are not loaded") from err
+    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
+        meta = {k: str(v) for k, v in obj.items() if isinstance(v, str | int | float)}
+        obj = obj["state_dict"]
+    else:
+        meta = {}
+    if not isinstance(obj, dict) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
+        raise CheckpointError(f"{expected} checkpoint {path}: expected a state dict of tensors, "
+                              f"got {type(obj).__name__}")
+    return obj, meta
+
+
+def load_weights(model: nn.Module, path: str | Path, expected: str) -> dict[str, str]:
+    """Load the weights of ``model`` from ``path`` safely.
+
+    Args:
+        model: the network to fill (its architecture must match the checkpoint).
+        path: checkpoint file (see module docstring).
+        expected: human name of the network (``"flow network FlowNet('default')"``) used in error messages.
+
+    Returns:
+        The checkpoint's string metadata (safetensors metadata or scalar Lightning fields).
+
+    Raises:
+        CheckpointError: missing file, unsafe/unreadable file, no prefix matching the model's parameters,
+            missing/unexpected keys or shape mismatches.
+    """
+    path = Path(path)
+    state, meta = _read_state(path, expected)
+    wanted = model.state_dict()
+    best, best_hits = "", -1
+    for p in PREFIXES:
+        hits = sum(1 for k in state if k.startswith(p) and k[len(p):] in wanted)
+        if hits > best_hits:
+            best, best_hits = p, hits
+    sub = {k[len(best):]: v for k, v in state.items() if k.startswith(best)}
+    missing = sorted(set(wanted) - set(sub))
+    unexpected = sorted(set(sub) - set(wanted))
+    if best_hits <= 0 or missing or unexpected:
+        raise CheckpointError(f"{expected} checkpoint {path}: does not hold a {expected} "
+                              f"({len(missing)} missing keys e.g. {missing[:3]}, {len(unexpected)} unexpected e.g. "
+                              f"{unexpected[:3]})")
+    bad = [k for k, v in sub.items() if v.shape != wanted[k].shape]
+    if bad:
+        k = bad[0]
+        raise CheckpointError(f"{expected} checkpoint {path}: tensor {k} has shape {tuple(sub[k].shape)}, the model "
+                              f"expects {tuple(wanted[k].shape)} (another network variant?)")
+    model.load_state_dict({k: v.to(wanted[k].dtype) for k, v in sub.items()})
+    return meta
+
+
+class NetworkFlow:
+    """Forward and backward flow from a trained :class:`~dfvo.models.flow_net.FlowNet` (one batch of 2B pairs).
+
+    Args:
+        checkpoint: weights file.
+        variant: FlowNet variant; None: the checkpoint's ``variant`` metadata, else the first of
+            :data:`VARIANTS` whose parameters match the checkpoint.
+        device: torch device.
+    """
+
+    name = "network"
+
+    def __init__(self, checkpoint: str | Path, variant: str | None = None, device: str = "cpu") -> None:
+        self.checkpoint = Path(checkpoint)
+        meta = {}
+        if variant is None and self.checkpoint.is_file():
+            _, meta = _read_state(self.checkpoint, "flow network")
+        if variant is None and "variant" not in meta and self.checkpoint.is_file():
+            variant = self._guess_variant(device)
+        self.variant = variant or meta.get("variant", "default")
+        self.model = FlowNet(self.variant).to(device).eval()
+        load_weights(self.model, self.checkpoint, f"flow network FlowNet({self.variant!r})")
+        self.device = torch.device(device)
+
+    def _guess_variant(self, device: str) -> str | None:
+        """The first FlowNet variant whose parameters the checkpoint holds (None: none does; load_weights then
+        reports the mismatch against the default variant)."""
+        for name in VARIANTS:
+            try:
+                load_weights(FlowNet(name).to(device), self.checkpoint, f"flow network FlowNet({name!r})")
+                return name
+            except CheckpointError:
+                continue
+        return None
+
+    def __call__(self, images_prev: torch.Tensor, images_cur: torch.Tensor,
+                 indices: list[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(flow_fwd, flow_bwd)`` (B,2,H,W) for images (B,3,H,W) prev and cur (``indices`` unused)."""
+        KORNIA_CHECK_SHAPE(images_prev, ["B", "3", "H", "W"])
+        with torch.no_grad():
+            fwd, bwd = self.model.forward_backward(images_prev.to(self.device), images_cur.to(self.device))
+        return fwd, bwd
+
+
+class NetworkDepth:
+    """Depth from a trained :class:`~dfvo.models.depth_net.DepthNet`.
+
+    Args:
+        checkpoint: weights file.
+        depth_scale: factor from the network's depth to metres (see module docstring).
+        min_depth, max_depth: the network's depth range (as trained).
+        device: torch device.
+    """
+
+    name = "network"
+
+    def __init__(self, checkpoint: str | Path, depth_scale: float = 1.0, min_depth: float = 0.1,
+                 max_depth: float = 100.0, device: str = "cpu") -> None:
+        if depth_scale <= 0:
+            raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
+        self.checkpoint = Path(checkpoint)
+        self.model = DepthNet(min_depth, max_depth).to(device).eval()
+        load_weights(self.model, self.checkpoint, "depth network DepthNet")
+        self.depth_scale = float(depth_scale)
+        self.device = torch.device(device)
+
+    def __call__(self, images: torch.Tensor, indices: list[int] | None = None) -> torch.Tensor:
+        """Depth (B,1,H,W) in metres of images (B,3,H,W); inputs are resized to multiples of 32 and back."""
+        KORNIA_CHECK_SHAPE(images, ["B", "3", "H", "W"])
+        h, w = images.shape[-2:]
+        hp, wp = max(64, round(h / 32) * 32), max(64, round(w / 32) * 32)
+        x = images.to(self.device)
+        if (hp, wp) != (h, w):
+            x = F.interpolate(x, size=(hp, wp), mode="bilinear", align_corners=False)
+        depth = self.model.depth(x)
+        if (hp, wp) != (h, w):
+            depth = F.interpolate(depth, size=(h, w), mode="bilinear", align_corners=False)
+        return depth * self.depth_scale

@@ -1,0 +1,101 @@
+"""E-tracker: essential matrix RANSAC, GRIC against a homography, decomposition with cheirality, and the
+simple scale from CNN depth, all batched over frame pairs.
+
+Convention:
+    Inputs are padded correspondences of pairs (prev=i, cur=j): ``pts_i``/``pts_j`` (B,N,2) pixels,
+    ``mask`` (B,N), intrinsics ``K`` (B,3,3), depth of frame i (B,1,H,W). ``R, t`` are ``T_cur_prev`` (maps
+    frame-i points into camera j) with unit ``t``; the metric translation is ``scale * t``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from dfvo.geometry.gric import gric_essential, gric_homography
+from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, find_homography_ransac
+from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.model_selection import prefer_pnp_flow, prefer_pnp_gric
+from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depth
+
+__all__ = ["ETrackerResult", "track_essential", "essential_scale"]
+
+
+@dataclass
+class ETrackerResult:
+    """Per-frame (B,) results of :func:`track_essential`.
+
+    Attributes:
+        R: (B,3,3), t: (B,3) unit ``T_cur_prev``. E: (B,3,3). inliers: (B,N) RANSAC inliers.
+        num_inliers: (B,) long. cheirality_fraction: (B,) of valid rows in front of both cameras.
+        gric_e, gric_h: (B,) float64 (NaN when model_selection is not "gric").
+        valid: (B,) bool, E usable. reasons: why a frame's E is not usable (None when valid).
+    """
+
+    R: torch.Tensor
+    t: torch.Tensor
+    E: torch.Tensor
+    inliers: torch.Tensor
+    num_inliers: torch.Tensor
+    cheirality_fraction: torch.Tensor
+    gric_e: torch.Tensor
+    gric_h: torch.Tensor
+    valid: torch.Tensor
+    reasons: list[str | None]
+
+
+def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
+                    cfg: TrackerConfig, generators: list[torch.Generator] | None) -> ETrackerResult:
+    """Essential-matrix tracking with validity rules: more than ``min_correspondences`` rows, a RANSAC model,
+    E preferred by model selection (GRIC_E <= GRIC_H, or enough flow), and at least
+    ``min_cheirality_fraction`` of the rows passing cheirality."""
+    B = pts_i.shape[0]
+    n = mask.sum(-1)
+    enough = n > cfg.min_correspondences
+    ransac = find_essential_ransac(pts_i, pts_j, mask, K, threshold_px=cfg.e_threshold_px,
+                                   iterations=cfg.e_iterations, repeats=cfg.ransac_repeats, generators=generators)
+    R, t, front = decompose_essential(ransac.model, K, pts_i, pts_j, mask)
+    cheir = front.sum(-1).to(torch.float64) / n.clamp_min(1).to(torch.float64)
+    nan = torch.full((B,), float("nan"), dtype=torch.float64, device=pts_i.device)
+    if cfg.model_selection == "gric":
+        H = find_homography_ransac(pts_i, pts_j, mask, threshold_px=cfg.h_threshold_px,
+                                   iterations=cfg.h_iterations, generators=generators)
+        g_e = gric_essential(ransac.model, K, pts_i, pts_j, mask, sigma=cfg.gric_sigma)
+        g_h = gric_homography(H.model, pts_i, pts_j, mask, sigma=cfg.gric_sigma)
+        pnp_wanted = prefer_pnp_gric(g_e, g_h)
+    else:
+        g_e, g_h = nan, nan.clone()
+        pnp_wanted = prefer_pnp_flow(pts_i, pts_j, mask, cfg.flow_magnitude_threshold)
+    reasons: list[str | None] = []
+    valid = torch.zeros(B, dtype=torch.bool, device=pts_i.device)
+    for b in range(B):
+        if not bool(enough[b]):
+            reasons.append(f"E invalid: {int(n[b])} correspondences <= {cfg.min_correspondences}")
+        elif not bool(ransac.success[b]):
+            reasons.append("E invalid: RANSAC found no model")
+        elif bool(pnp_wanted[b]):
+            reasons.append("model selection prefers PnP (GRIC_E > GRIC_H)" if cfg.model_selection == "gric"
+                           else f"model selection prefers PnP (median flow <= {cfg.flow_magnitude_threshold} px)")
+        elif float(cheir[b]) < cfg.min_cheirality_fraction:
+            reasons.append(f"E invalid: {float(cheir[b]):.1%} of points pass cheirality")
+        else:
+            reasons.append(None)
+            valid[b] = True
+    return ETrackerResult(R, t, ransac.model, ransac.inliers, ransac.num_inliers, cheir, g_e, g_h, valid, reasons)
+
+
+def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor,
+                    depth_i: torch.Tensor, K: torch.Tensor, cfg: TrackerConfig,
+                    generators: list[torch.Generator] | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Simple scale (1-D RANSAC on CNN / triangulated depth ratios) of unit ``T_cur_prev`` motions.
+
+    Returns:
+        scale (B,) float64 and success (B,) bool (needs more than ``scale_min_points`` usable rows).
+    """
+    z_cnn, ok = sample_depth(depth_i, pts_i, cfg.max_depth, cfg.depth_crop_top)
+    z_tri, front = triangulated_depth(R, t, K, pts_i, pts_j)
+    s, _, success = simple_scale(z_cnn, z_tri, mask & ok & front, trials=cfg.scale_ransac_trials,
+                                 samples=cfg.scale_ransac_samples, threshold=cfg.scale_inlier_threshold,
+                                 min_points=cfg.scale_min_points, generators=generators)
+    return s, success

@@ -1,0 +1,220 @@
+"""The DF-VO odometry loop: streaming ``step`` and batched ``run`` with identical results.
+
+Convention:
+    Pairs are (prev=i, cur=j): ``flow_fwd`` i->j and ``flow_bwd`` j->i (B,2,H,W) in pixels, ``depth`` of frame
+    i (B,1,H,W) in metres, intrinsics ``K`` (B,3,3). Trackers estimate ``T_cur_prev`` (prev points into the
+    current camera); the loop returns ``T_prev_cur = inv(T_cur_prev)`` and accumulates
+    ``T_w_cur = T_w_prev @ T_prev_cur`` from ``T_w_0 = I``. Poses are float64.
+
+Fallback order per frame (paper): (1) correspondence selection fails -> constant motion (the previous
+``T_prev_cur``; identity at the start); (2) E invalid (too few rows, GRIC prefers H, cheirality) or the scale
+fails -> PnP (tracker="hybrid"; tracker="e" falls back to constant motion); (3) otherwise R from E and
+``t = s * t_unit``. When PnP itself fails the frame also uses constant motion (the official code used identity).
+
+Batched == streaming: the selection, E/H RANSAC, GRIC and simple scale run on the whole batch; frame k of the
+sequence always draws from ``torch.Generator().manual_seed(cfg.seed + k)``; the iterative scale, PnP and the
+pose composition run frame by frame in order.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
+
+from dfvo.geometry.se3 import pose_from_rt
+from dfvo.geometry.two_view import decompose_essential, find_essential_ransac
+from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.selection import select_correspondences
+from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.e_tracker import essential_scale, track_essential
+from dfvo.tracking.pnp_tracker import track_pnp
+from dfvo.tracking.scale import iterative_scale, sample_depth
+
+__all__ = ["FrameResult", "VisualOdometry"]
+
+
+@dataclass
+class FrameResult:
+    """One tracked frame: ``T_w_cur`` (4,4), ``T_prev_cur`` (4,4) float64, and ``diagnostics`` with keys
+    tracker ("E", "PnP", "constant_motion"), num_correspondences, num_inliers, gric_e, gric_h, scale,
+    fallback_reason, cheirality_fraction, pnp_success, selection_failed, time_* (seconds)."""
+
+    T_w_cur: torch.Tensor
+    T_prev_cur: torch.Tensor
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+
+def _inv(T: torch.Tensor) -> torch.Tensor:
+    R, t = T[..., :3, :3], T[..., :3, 3:]
+    out = torch.eye(4, dtype=T.dtype, device=T.device).expand_as(T).clone()
+    out[..., :3, :3] = R.transpose(-1, -2)
+    out[..., :3, 3:] = -R.transpose(-1, -2) @ t
+    return out
+
+
+class VisualOdometry:
+    """Monocular visual odometry from flows and depths (see the module docstring for conventions).
+
+    Args:
+        cfg: :class:`TrackerConfig` (official defaults when omitted).
+    """
+
+    def __init__(self, cfg: TrackerConfig | None = None) -> None:
+        self.cfg = cfg if cfg is not None else TrackerConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the trajectory: the next frame starts at identity, frame counter 0, no motion model."""
+        self.frame = 0
+        self.T_w = torch.eye(4, dtype=torch.float64)
+        self.last_motion = torch.eye(4, dtype=torch.float64)
+        self.last_scale = 0.0
+
+    # ------------------------------------------------------------------------------------------ public
+    def step(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth_prev: torch.Tensor,
+             K: torch.Tensor) -> FrameResult:
+        """Track one new frame: flows (1,2,H,W) prev->cur and cur->prev, depth (1,1,H,W) of prev, K (1,3,3)."""
+        KORNIA_CHECK(flow_fwd.shape[0] == 1, f"VisualOdometry.step takes one pair (B=1); got flow_fwd "
+                                             f"{tuple(flow_fwd.shape)} (use run for batches)")
+        return self._batch(flow_fwd, flow_bwd, depth_prev, K.reshape(1, 3, 3))[0]
+
+    def run(self, flows_fwd: torch.Tensor, flows_bwd: torch.Tensor, depths: torch.Tensor, K: torch.Tensor,
+            batch_size: int = 8) -> list[FrameResult]:
+        """Track a whole sequence: (N-1,2,H,W) flows, (N-1,1,H,W) depths of the earlier frame of each pair,
+        K (3,3) or (N-1,3,3). Returns N-1 results (frame 0 is identity), identical to calling :meth:`step`."""
+        KORNIA_CHECK_SHAPE(flows_fwd, ["M", "2", "H", "W"])
+        M = flows_fwd.shape[0]
+        Ks = K.reshape(1, 3, 3).expand(M, 3, 3) if K.dim() == 2 else K
+        KORNIA_CHECK(Ks.shape == (M, 3, 3), f"VisualOdometry.run: K {tuple(K.shape)}; expected (3,3) or ({M},3,3)")
+        out: list[FrameResult] = []
+        for s in range(0, M, max(1, int(batch_size))):
+            e = min(M, s + max(1, int(batch_size)))
+            out.extend(self._batch(flows_fwd[s:e], flows_bwd[s:e], depths[s:e], Ks[s:e]))
+        return out
+
+    # ------------------------------------------------------------------------------------------ internals
+    def _batch(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth: torch.Tensor,
+               K: torch.Tensor) -> list[FrameResult]:
+        cfg = self.cfg
+        KORNIA_CHECK_SHAPE(flow_fwd, ["B", "2", "H", "W"])
+        KORNIA_CHECK_SHAPE(flow_bwd, ["B", "2", "H", "W"])
+        KORNIA_CHECK_SHAPE(depth, ["B", "1", "H", "W"])
+        KORNIA_CHECK_SHAPE(K, ["B", "3", "3"])
+        B = flow_fwd.shape[0]
+        same = depth.shape[0] == B and depth.shape[-2:] == flow_fwd.shape[-2:] and K.shape[0] == B
+        KORNIA_CHECK(flow_bwd.shape == flow_fwd.shape and same,
+                     f"VisualOdometry: flow_fwd {tuple(flow_fwd.shape)}, flow_bwd "
+                     f"{tuple(flow_bwd.shape)}, depth {tuple(depth.shape)}, K {tuple(K.shape)} must share B, H, W")
+        gens = [torch.Generator().manual_seed(cfg.seed + self.frame + b) for b in range(B)]
+        t0 = time.perf_counter()
+        incon = forward_backward_inconsistency(flow_fwd, flow_bwd)
+        corr = select_correspondences(flow_fwd, incon, method=cfg.selection_method, num=cfg.num_correspondences,
+                                      grid=cfg.grid, max_inconsistency=cfg.max_inconsistency,
+                                      min_valid_fraction=cfg.min_valid_fraction,
+                                      min_region_fraction=cfg.min_region_fraction, crop_top=cfg.selection_crop_top)
+        pi, pj, mask = corr.pts_i.to(torch.float64), corr.pts_j.to(torch.float64), corr.mask
+        Kd = K.to(torch.float64)
+        t1 = time.perf_counter()
+        e_res, scale, scale_ok = None, None, None
+        if cfg.tracker != "pnp":
+            e_res = track_essential(pi, pj, mask, Kd, cfg, gens)
+            scale, scale_ok = essential_scale(e_res.R, e_res.t, pi, pj, mask, depth, Kd, cfg, gens)
+        t2 = time.perf_counter()
+        shared = {"time_selection": (t1 - t0) / B, "time_e_tracker": (t2 - t1) / B}
+        results = []
+        for b in range(B):
+            tb = time.perf_counter()
+            res = self._finish_frame(b, corr, pi, pj, mask, depth, Kd, e_res, scale, scale_ok, gens[b])
+            res.diagnostics.update(shared)
+            res.diagnostics["time_sequential"] = time.perf_counter() - tb
+            results.append(res)
+        return results
+
+    def _finish_frame(self, b: int, corr: Any, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor,
+                      depth: torch.Tensor, K: torch.Tensor, e_res: Any, scale: torch.Tensor | None,
+                      scale_ok: torch.Tensor | None, gen: torch.Generator) -> FrameResult:
+        cfg = self.cfg
+        sl = slice(b, b + 1)
+        diag: dict[str, Any] = {"frame": self.frame + 1, "tracker": None, "num_correspondences": int(mask[b].sum()),
+                                "num_inliers": 0, "gric_e": None, "gric_h": None, "scale": None,
+                                "fallback_reason": None, "cheirality_fraction": None, "pnp_success": None,
+                                "selection_failed": bool(corr.failed[b])}
+        if e_res is not None:
+            diag.update(gric_e=float(e_res.gric_e[b]), gric_h=float(e_res.gric_h[b]),
+                        cheirality_fraction=float(e_res.cheirality_fraction[b]))
+        T_j_i: torch.Tensor | None = None
+        if bool(corr.failed[b]):
+            diag["fallback_reason"] = f"selection failed: {corr.reasons[b]}"
+        elif cfg.tracker == "pnp":
+            T_j_i = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
+        else:
+            reason = e_res.reasons[b]
+            if reason is None:
+                T_j_i, reason = self._essential_pose(b, pi, pj, mask, depth, K, e_res, scale, scale_ok, gen, diag)
+            if T_j_i is None:
+                diag["fallback_reason"] = reason
+                if cfg.tracker == "hybrid":
+                    T_j_i = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
+        if T_j_i is None:
+            T_prev_cur = self.last_motion.clone()
+            diag["tracker"] = "constant_motion"
+        else:
+            T_prev_cur = _inv(T_j_i)
+        self.T_w = self.T_w @ T_prev_cur
+        self.last_motion = T_prev_cur
+        self.last_scale = float(T_prev_cur[:3, 3].norm())
+        self.frame += 1
+        return FrameResult(self.T_w.clone(), T_prev_cur, diag)
+
+    def _essential_pose(self, b: int, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
+                        K: torch.Tensor, e_res: Any, scale: torch.Tensor, scale_ok: torch.Tensor,
+                        gen: torch.Generator, diag: dict[str, Any]) -> tuple[torch.Tensor | None, str | None]:
+        cfg = self.cfg
+        sl = slice(b, b + 1)
+        R, t = e_res.R[sl], e_res.t[sl]
+        s, ok = float(scale[b]), bool(scale_ok[b])
+        diag["num_inliers"] = int(e_res.num_inliers[b])
+        if cfg.scale_method == "iterative":
+            z_cnn, z_ok = sample_depth(depth[sl], pi[sl], cfg.max_depth, cfg.depth_crop_top)
+
+            def estimate(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                if int(rows.sum()) <= cfg.min_correspondences:
+                    return R, t, torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.bool)
+                r = find_essential_ransac(pi[sl], pj[sl], rows, K[sl], threshold_px=cfg.e_threshold_px,
+                                          iterations=cfg.e_iterations, repeats=cfg.ransac_repeats, generators=[gen])
+                R2, t2, _ = decompose_essential(r.model, K[sl], pi[sl], pj[sl], rows)
+                s2, ok2 = essential_scale(R2, t2, pi[sl], pj[sl], rows, depth[sl], K[sl], cfg, [gen])
+                return R2, t2, s2, ok2 & r.success
+
+            R0, t0, s0 = R, t, 0.0
+            if self.last_scale > 0:
+                # start from the motion model (previous R and t direction and scale): its rigid flow re-selects
+                # the static scene even when E itself locked onto a large moving object
+                T_prev = _inv(self.last_motion)[None]
+                R0, t0, s0 = T_prev[:, :3, :3], T_prev[:, :3, 3] / self.last_scale, self.last_scale
+            s_it, R_it, t_it, ok_it, iters = iterative_scale(
+                pi[sl], pj[sl], mask[sl], z_cnn, z_ok, K[sl], R0, t0, s0, estimate,
+                max_iters=cfg.iterative_max_iters, tol=cfg.iterative_tol,
+                flow_threshold_px=cfg.iterative_flow_threshold_px)
+            diag["scale_iterations"] = iters
+            if ok_it:
+                R, t, s, ok = R_it, t_it, s_it, True
+        if not ok:
+            return None, f"scale recovery failed (<= {cfg.scale_min_points} usable depth points)"
+        diag.update(tracker="E", scale=s)
+        return pose_from_rt(R, s * t)[0], None
+
+    def _pnp(self, sl: slice, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
+             K: torch.Tensor, gen: torch.Generator, diag: dict[str, Any]) -> torch.Tensor | None:
+        T, ok, nin = track_pnp(pi[sl], pj[sl], mask[sl], depth[sl], K[sl], self.cfg, [gen])
+        diag.update(pnp_success=bool(ok[0]), num_inliers=int(nin[0]))
+        if not bool(ok[0]):
+            prev = diag.get("fallback_reason")
+            diag["fallback_reason"] = (f"{prev}; " if prev else "") + "PnP failed"
+            return None
+        diag.update(tracker="PnP", scale=float(T[0, :3, 3].norm()))
+        return T[0]

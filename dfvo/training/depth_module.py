@@ -1,0 +1,228 @@
+"""Lightning module for self-supervised depth (and pose) training: ``model=depth_stereo|depth_mono|depth_mono_sc``.
+
+Config (``cfg.model``, see ``conf/model/depth_*.yaml``):
+    task: "depth"; name; stereo (use the stereo partner, metric depth from the calibrated baseline);
+    temporal (use i-1, i+1 with the pose network); alpha (0.85); w_smooth (λ_ds = 1e-3);
+    w_consistency (λ_dc, 5 for depth_mono_sc, else 0); automask (monodepth2's identity reprojection);
+    min_depth, max_depth; init_depth (initial depth of the disparity heads, metres; null: sigmoid 0.5);
+    lr (1e-4), lr_drop_fraction (0.75: lr x0.1 for the last quarter of the steps);
+    log_images_every (steps); monitor (metric of the "best" checkpoint). Validation logs the Eigen metrics
+    raw (``val/abs_rel``, ..., metric depth) and median-scaled (``val/abs_rel_med``, ..., monocular models).
+
+Loss (per scale s = 0..3, averaged over scales): every scale's disparity is upsampled to the input
+resolution (monodepth2), each source view (prev, next, stereo partner) is warped into the target, the
+SSIM+L1 error takes a per-pixel minimum over views (out-of-view pixels excluded), plus
+``w_smooth / 2^s`` x edge-aware smoothness of the mean-normalised disparity at scale s, plus
+``w_consistency`` x the inverse-depth consistency (per-pixel minimum over the temporal views).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig, OmegaConf
+
+from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
+from dfvo.losses.photometric import min_over_views, ssim_l1_error
+from dfvo.losses.reprojection import reproject
+from dfvo.losses.smoothness import edge_aware_smoothness
+from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth
+from dfvo.models.pose_net import PoseNet
+
+MODEL_TYPE_KEY = "dfvo_model_type"
+
+
+def _get(cfg: Any, key: str, default: Any) -> Any:
+    value = OmegaConf.select(cfg, key, default=default)
+    return default if value is None else value
+
+
+def eigen_depth_metrics(pred: torch.Tensor, gt: torch.Tensor, min_depth: float = 1e-3, max_depth: float = 80.0,
+                        median_scaling: bool = False) -> dict[str, torch.Tensor]:
+    """Eigen et al. metrics (abs rel, sq rel, rmse, δ<1.25) over pixels with ``min_depth < gt < max_depth``.
+
+    Args:
+        pred, gt: (B,1,H,W) depths in metres. median_scaling: scale ``pred`` by median(gt)/median(pred)
+            per image (for monocular models).
+
+    Returns:
+        dict of scalar tensors averaged over the images of the batch (abs_rel, sq_rel, rmse, a1).
+    """
+    out: dict[str, list[torch.Tensor]] = {"abs_rel": [], "sq_rel": [], "rmse": [], "a1": []}
+    for p, g in zip(pred, gt):
+        mask = (g > min_depth) & (g < max_depth)
+        if not mask.any():
+            continue
+        p, g = p[mask], g[mask]
+        if median_scaling:
+            p = p * (g.median() / p.median())
+        p = p.clamp(min_depth, max_depth)
+        ratio = torch.maximum(p / g, g / p)
+        out["abs_rel"].append(((p - g).abs() / g).mean())
+        out["sq_rel"].append(((p - g) ** 2 / g).mean())
+        out["rmse"].append(((p - g) ** 2).mean().sqrt())
+        out["a1"].append((ratio < 1.25).float().mean())
+    return {k: torch.stack(v).mean() for k, v in out.items() if v}
+
+
+class DepthPoseModule(L.LightningModule):
+    """Train :class:`DepthNet` (and :class:`PoseNet` when temporal views are used). Task ``"depth"``.
+
+    ``DepthPoseModule.load_from_checkpoint(path)`` rebuilds the module from the config stored in the checkpoint.
+    Batches use the keys of :mod:`dfvo.data`: ``image``, ``K`` and, as configured, ``image_prev``,
+    ``image_next`` (temporal), ``image_right`` + ``T_right_left`` (stereo); validation batches add ``depth``.
+    """
+
+    def __init__(self, cfg: DictConfig | dict, **_: Any) -> None:
+        super().__init__()
+        cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)  # dict: from load_from_checkpoint
+        m = cfg.model
+        self.model_type = f"depth:{_get(m, 'name', 'depth')}"
+        self.stereo = bool(_get(m, "stereo", False))
+        self.temporal = bool(_get(m, "temporal", True))
+        if not (self.stereo or self.temporal):
+            raise ValueError("model: at least one of model.stereo / model.temporal must be true")
+        self.alpha = float(_get(m, "alpha", 0.85))
+        self.w_smooth = float(_get(m, "w_smooth", 1e-3))
+        self.w_consistency = float(_get(m, "w_consistency", 0.0))
+        if self.w_consistency > 0 and not self.temporal:
+            raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
+        self.automask = bool(_get(m, "automask", True))
+        self.min_depth = float(_get(m, "min_depth", 0.1))
+        self.max_depth = float(_get(m, "max_depth", 100.0))
+        self.lr = float(_get(m, "lr", 1e-4))
+        self.lr_drop_fraction = float(_get(m, "lr_drop_fraction", 0.75))
+        self.log_images_every = int(_get(m, "log_images_every", 200))
+        init_depth = _get(m, "init_depth", None)
+        self.depth_net = DepthNet(self.min_depth, self.max_depth, None if init_depth is None else float(init_depth))
+        self.pose_net = PoseNet() if self.temporal else None
+        self.save_hyperparameters({"cfg": OmegaConf.to_container(cfg, resolve=True), MODEL_TYPE_KEY: self.model_type})
+
+    # ---------------------------------------------------------------- checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint[MODEL_TYPE_KEY] = self.model_type
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        found = checkpoint.get(MODEL_TYPE_KEY, checkpoint.get("hyper_parameters", {}).get(MODEL_TYPE_KEY))
+        if found != self.model_type:
+            raise ValueError(f"checkpoint holds model type {found!r}, but this run trains {self.model_type!r} "
+                             "(pick the matching model= or another ckpt_path)")
+
+    # ---------------------------------------------------------------- forward
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """Depth (B,1,H,W) of ``image`` (B,3,H,W) at full resolution."""
+        return disp_to_depth(self.depth_net(image)[0], self.min_depth, self.max_depth)
+
+    def _sources(self, batch: dict[str, torch.Tensor]) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
+        """(name, source image, T_source_target) for every source view."""
+        def need(key: str, why: str) -> torch.Tensor:
+            if key not in batch:
+                raise KeyError(f"DepthPoseModule ({self.model_type}): batch lacks {key!r} needed for {why}; "
+                               f"got keys {sorted(batch)} (check data= and model.stereo/temporal)")
+            return batch[key]
+        image = need("image", "the target view")
+        out = []
+        if self.temporal:
+            prev, nxt = need("image_prev", "temporal views"), need("image_next", "temporal views")
+            # the pose net sees frames in temporal order: PoseNet(a, b) = T_b_a
+            T_cur_prev = self.pose_net(prev, image)
+            out.append(("prev", prev, torch.linalg.inv(T_cur_prev)))
+            out.append(("next", nxt, self.pose_net(image, nxt)))
+        if self.stereo:
+            out.append(("stereo", need("image_right", "stereo"), need("T_right_left", "stereo").float()))
+        return out
+
+    def _losses(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict]:
+        image, K = batch["image"], batch["K"].float()
+        B, _, H, W = image.shape
+        sources = self._sources(batch)
+        temporal = [s for s in sources if s[0] != "stereo"]
+        if self.w_consistency > 0:
+            disps_all = self.depth_net(torch.cat([image] + [s[1] for s in temporal], 0))
+            disps = {s: d[:B] for s, d in disps_all.items()}
+        else:
+            disps = self.depth_net(image)
+        identity = []
+        if self.automask:
+            identity = [ssim_l1_error(image, src, self.alpha) + 1e-5 for _, src, _ in sources]
+        terms: dict[str, torch.Tensor] = {}
+        total = image.new_zeros(())
+        vis: dict[str, torch.Tensor] = {}
+        for s in SCALES:
+            disp_full = F.interpolate(disps[s], size=(H, W), mode="bilinear", align_corners=False)
+            depth = disp_to_depth(disp_full, self.min_depth, self.max_depth)
+            errors, valids, diffs, dvalids = list(identity), [None] * len(identity), [], []
+            for k, (name, src, T) in enumerate(sources):
+                rep = reproject(src, depth, T, K)
+                errors.append(ssim_l1_error(image, rep.warped, self.alpha))
+                valids.append(rep.valid)
+                if s == 0:
+                    vis[name] = rep.warped.detach()
+                if self.w_consistency > 0 and name != "stereo":
+                    d_src = disp_to_depth(disps_all[s][(k + 1) * B:(k + 2) * B], self.min_depth, self.max_depth)
+                    d_src = F.interpolate(d_src, size=(H, W), mode="bilinear", align_corners=False)
+                    sampled = F.grid_sample(d_src, rep.grid, mode="bilinear", padding_mode="border",
+                                            align_corners=True)
+                    diffs.append(inverse_depth_difference(rep.depth_in_source, sampled))
+                    dvalids.append(rep.valid)
+            best, mask = min_over_views(errors, valids)
+            photo = (best * mask).sum() / mask.sum().clamp_min(1)
+            small = F.interpolate(image, size=disps[s].shape[-2:], mode="bilinear", align_corners=False)
+            smooth = edge_aware_smoothness(disps[s], small)
+            loss_s = photo + self.w_smooth / (2 ** s) * smooth
+            terms[f"photometric_s{s}"] = photo.detach()
+            terms[f"smoothness_s{s}"] = smooth.detach()
+            if diffs:
+                cons = depth_consistency_loss(diffs, dvalids)
+                loss_s = loss_s + self.w_consistency * cons
+                terms[f"consistency_s{s}"] = cons.detach()
+            terms[f"loss_s{s}"] = loss_s.detach()
+            total = total + loss_s / len(SCALES)
+        vis["disp"] = disps[0].detach()
+        return total, terms, vis
+
+    # ---------------------------------------------------------------- steps
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        loss, terms, vis = self._losses(batch)
+        bs = batch["image"].shape[0]
+        self.log("train/loss", loss.detach(), prog_bar=True, batch_size=bs)
+        for name, value in terms.items():
+            self.log(f"train/{name}", value, batch_size=bs)
+        if self.log_images_every > 0 and self.global_step % self.log_images_every == 0:
+            self._log_images(batch, vis, "train")
+        return loss
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        bs = batch["image"].shape[0]
+        depth = self(batch["image"])
+        if "depth" in batch:
+            metrics = eigen_depth_metrics(depth, batch["depth"], max_depth=80.0, median_scaling=False)
+            scaled = eigen_depth_metrics(depth, batch["depth"], max_depth=80.0, median_scaling=True)
+            for k, v in metrics.items():
+                self.log(f"val/{k}", v, batch_size=bs, sync_dist=True, prog_bar=k == "abs_rel")
+            for k, v in scaled.items():
+                self.log(f"val/{k}_med", v, batch_size=bs, sync_dist=True)
+        if batch_idx == 0:
+            self._log_images(batch, {"disp": self.depth_net(batch["image"])[0]}, "val")
+
+    def _log_images(self, batch: dict[str, torch.Tensor], vis: dict[str, torch.Tensor], stage: str) -> None:
+        writer = getattr(self.logger, "experiment", None) if self.logger is not None else None
+        if writer is None or not hasattr(writer, "add_image"):
+            return
+        writer.add_image(f"{stage}/image", batch["image"][0].clamp(0, 1), self.global_step)
+        disp = vis["disp"][0]
+        writer.add_image(f"{stage}/disparity", (disp / disp.max().clamp_min(1e-6)).clamp(0, 1), self.global_step)
+        for name in ("prev", "next", "stereo"):
+            if name in vis:
+                writer.add_image(f"{stage}/warped_{name}", vis[name][0].clamp(0, 1), self.global_step)
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        params = list(self.depth_net.parameters()) + (list(self.pose_net.parameters()) if self.pose_net else [])
+        optimizer = torch.optim.Adam(params, lr=self.lr)
+        total = max(int(self.trainer.estimated_stepping_batches), 1) if self._trainer is not None else 1
+        drop_at = int(self.lr_drop_fraction * total)
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0 if step < drop_at else 0.1)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}

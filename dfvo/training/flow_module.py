@@ -1,0 +1,163 @@
+"""Lightning module for the optical flow network: supervised (synthetic world) or self-supervised (video).
+
+Config (``cfg.model``, see ``conf/model/flow_supervised.yaml`` / ``flow_self.yaml``):
+    task: "flow"; mode: "supervised" | "self"; variant: "default" | "small" | "tiny"; lr; lr_milestones (epochs)
+    and lr_gamma; loss.{alpha, w_smooth, w_consistency, occlusion}; init_from (checkpoint to start from:
+    a Lightning ``.ckpt`` of this module or a ``.safetensors`` / ``.pt`` state dict of the FlowNet);
+    log_images_every (steps).
+
+Batches use the sample keys of :mod:`dfvo.data`:
+    supervised: ``image``, ``image_next``, ``flow_fwd``, ``flow_bwd``, ``flow_fwd_valid``, ``flow_bwd_valid``.
+    self: ``image``, ``image_next`` and, when present, ``image_prev`` (the pair (prev, image) is added to the
+    batch, so both temporal pairs of a snippet train the network).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from dfvo.losses.flow_losses import endpoint_error, multiscale_epe, occlusion_mask, self_supervised_flow_loss
+from dfvo.models.flow_net import FlowNet
+from dfvo.training.flow_viz import flow_to_color, scalar_to_color
+
+MODES = ("supervised", "self")
+
+
+def _get(cfg: Any, key: str, default: Any) -> Any:
+    value = OmegaConf.select(cfg, key, default=default) if isinstance(cfg, DictConfig) else default
+    return default if value is None else value
+
+
+def load_flow_weights(net: FlowNet, path: str | Path) -> None:
+    """Load FlowNet weights from a Lightning checkpoint of :class:`FlowModule`, a ``.safetensors`` file or a
+    ``torch.save``-d state dict. Raises ``FileNotFoundError`` / ``KeyError`` naming the file on failure."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"flow weights: {path} does not exist (set model.init_from to a .ckpt, "
+                                f".safetensors or .pt file)")
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+        state = load_file(str(path))
+    else:
+        state = torch.load(path, map_location="cpu", weights_only=True)  # tensors and plain containers only
+        state = state.get("state_dict", state)
+    if any(k.startswith("net.") for k in state):
+        state = {k[4:]: v for k, v in state.items() if k.startswith("net.")}
+    try:
+        missing, unexpected = net.load_state_dict(state, strict=False)
+    except RuntimeError as err:  # shape mismatch: another variant
+        raise KeyError(f"flow weights {path}: tensor shapes do not match this network variant "
+                       f"(model.variant?): {str(err).splitlines()[1].strip()}") from None
+    if missing or unexpected:
+        raise KeyError(f"flow weights {path}: do not match the network variant (missing {missing[:3]}..., "
+                       f"unexpected {unexpected[:3]}...)")
+
+
+class FlowModule(L.LightningModule):
+    """Train :class:`dfvo.models.flow_net.FlowNet` (task ``"flow"`` of ``dfvo.training.runner``).
+
+    Args:
+        cfg: the full training config (``cfg.model`` as described in the module docstring).
+    """
+
+    def __init__(self, cfg: DictConfig) -> None:
+        super().__init__()
+        model_cfg = cfg.model if isinstance(cfg, DictConfig) and "model" in cfg else cfg
+        self.mode = str(_get(model_cfg, "mode", "supervised"))
+        if self.mode not in MODES:
+            raise ValueError(f"model.mode: expected one of {MODES}, got {self.mode!r}")
+        self.lr = float(_get(model_cfg, "lr", 1e-4))
+        self.lr_milestones = list(_get(model_cfg, "lr_milestones", [15]))
+        self.lr_gamma = float(_get(model_cfg, "lr_gamma", 0.1))
+        self.alpha = float(_get(model_cfg, "loss.alpha", 0.85))
+        self.w_smooth = float(_get(model_cfg, "loss.w_smooth", 0.1))
+        self.w_consistency = float(_get(model_cfg, "loss.w_consistency", 5e-3))
+        self.occlusion = bool(_get(model_cfg, "loss.occlusion", True))
+        self.log_images_every = int(_get(model_cfg, "log_images_every", 200))
+        self.net = FlowNet(str(_get(model_cfg, "variant", "small")))
+        init_from = _get(model_cfg, "init_from", None)
+        if init_from:
+            load_flow_weights(self.net, init_from)
+        if isinstance(cfg, DictConfig):
+            self.save_hyperparameters({"cfg": OmegaConf.to_container(cfg, resolve=True)})
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Forward and backward flow (B,2,H,W) of a pair of (B,3,H,W) images."""
+        return self.net.forward_backward(img1, img2)
+
+    def _pairs(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        for key in ("image", "image_next"):
+            if key not in batch:
+                raise KeyError(f"FlowModule ({self.mode}): batch lacks {key!r}; got keys {sorted(batch)}")
+        img1, img2 = batch["image"], batch["image_next"]
+        if self.mode == "self" and "image_prev" in batch:
+            img1 = torch.cat([batch["image_prev"], img1], 0)
+            img2 = torch.cat([batch["image"], img2], 0)
+        return img1, img2
+
+    def _supervised(self, batch: dict[str, torch.Tensor], flows_fwd: list[torch.Tensor],
+                    flows_bwd: list[torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        for key in ("flow_fwd", "flow_bwd", "flow_fwd_valid", "flow_bwd_valid"):
+            if key not in batch:
+                raise KeyError(f"FlowModule (supervised): batch lacks {key!r}; use data=synthetic (true flows), "
+                               f"got keys {sorted(batch)}")
+        lf, epe_f = multiscale_epe(flows_fwd, batch["flow_fwd"], batch["flow_fwd_valid"].bool())
+        lb, epe_b = multiscale_epe(flows_bwd, batch["flow_bwd"], batch["flow_bwd_valid"].bool())
+        return (lf + lb) / 2, {"epe": (epe_f[0] + epe_b[0]).detach() / 2}
+
+    def _step(self, batch: dict[str, torch.Tensor], stage: str, batch_idx: int) -> torch.Tensor:
+        img1, img2 = self._pairs(batch)
+        flows_fwd, flows_bwd = self.net.forward_backward(img1, img2, all_scales=True)
+        if self.mode == "supervised":
+            loss, terms = self._supervised(batch, flows_fwd, flows_bwd)
+        else:
+            loss, terms = self_supervised_flow_loss(img1, img2, flows_fwd, flows_bwd, alpha=self.alpha,
+                                                    w_smooth=self.w_smooth, w_consistency=self.w_consistency,
+                                                    occlusion=self.occlusion)
+            if "flow_fwd" in batch and "flow_fwd_valid" in batch:
+                b = batch["image"].shape[0]
+                terms["epe"] = endpoint_error(flows_fwd[0][-b:], batch["flow_fwd"], batch["flow_fwd_valid"].bool())
+        bs = img1.shape[0]
+        self.log(f"{stage}/loss", loss.detach(), prog_bar=True, batch_size=bs, sync_dist=stage != "train")
+        for name, value in terms.items():
+            self.log(f"{stage}/{name}", value, prog_bar=name == "epe", batch_size=bs, sync_dist=stage != "train")
+        if stage == "train" and self.log_images_every > 0 and self.global_step % self.log_images_every == 0:
+            self._log_images(img1, img2, flows_fwd[0].detach(), flows_bwd[0].detach(), batch, stage)
+        elif stage == "val" and batch_idx == 0:
+            self._log_images(img1, img2, flows_fwd[0].detach(), flows_bwd[0].detach(), batch, stage)
+        return loss
+
+    def _log_images(self, img1: torch.Tensor, img2: torch.Tensor, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor,
+                    batch: dict[str, torch.Tensor], stage: str) -> None:
+        logger = self.logger
+        writer = getattr(logger, "experiment", None) if logger is not None else None
+        if writer is None or not hasattr(writer, "add_image"):
+            return
+        visible, diff = occlusion_mask(flow_fwd[:1], flow_bwd[:1])
+        max_mag = None
+        if "flow_fwd" in batch and self.mode == "supervised":
+            max_mag = float(batch["flow_fwd"][:1].norm(dim=1).amax().clamp(min=1e-3))
+            writer.add_image(f"{stage}/flow_fwd_true", flow_to_color(batch["flow_fwd"][:1], max_mag)[0],
+                             self.global_step)
+        writer.add_image(f"{stage}/image", img1[0].clamp(0, 1), self.global_step)
+        writer.add_image(f"{stage}/flow_fwd", flow_to_color(flow_fwd[:1], max_mag)[0], self.global_step)
+        writer.add_image(f"{stage}/flow_bwd", flow_to_color(flow_bwd[:1], max_mag)[0], self.global_step)
+        writer.add_image(f"{stage}/fb_inconsistency", scalar_to_color(diff, vmax=3.0)[0], self.global_step)
+        writer.add_image(f"{stage}/visible", visible[0].float(), self.global_step)
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        return self._step(batch, "train", batch_idx)
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        return self._step(batch, "val", batch_idx)
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        optimizer = torch.optim.Adam(self.net.parameters(), lr=self.lr)
+        scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=self.lr_milestones,
+                                                         gamma=self.lr_gamma)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}

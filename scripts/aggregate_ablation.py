@@ -1,0 +1,89 @@
+"""Collect infer.py runs (a multirun sweep folder, or several run folders) into a markdown ablation table.
+
+Rows are the configurations (only the config groups that vary across the runs are shown, like the paper's
+ablation table); columns are sequences. A cell holds ``t_err % / r_err deg/100m`` when the sequence is long enough
+for the KITTI metrics (>= 100 m), otherwise ``RPE m / ATE m``; the fallback rate of the run is added with
+``--fallback``.
+
+Usage:
+    python scripts/aggregate_ablation.py multirun/infer/2026-01-01_12-00-00 [more folders] [--out table.md]
+
+Each run folder must hold the ``summary.json`` that infer.py writes (with its ``metrics`` and ``choices``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+GROUPS = ("data", "dataset@data", "tracker", "correspondence", "scale", "model_selection", "img_res", "flow", "depth")
+
+
+def load_runs(folders: list[Path]) -> list[dict[str, Any]]:
+    """Every ``summary.json`` under ``folders`` (recursively), newest layout first."""
+    runs = []
+    for folder in folders:
+        if not folder.exists():
+            raise FileNotFoundError(f"aggregate_ablation: {folder} does not exist (expected an infer.py output "
+                                    f"or multirun folder)")
+        for path in sorted(folder.rglob("summary.json")):
+            summary = json.loads(path.read_text())
+            summary["_path"] = str(path.parent)
+            runs.append(summary)
+    return runs
+
+
+def cell(summary: dict[str, Any], fallback: bool) -> str:
+    """One table cell: KITTI t_err/r_err when defined, else RPE/ATE; '-' without ground truth."""
+    m = summary.get("metrics") or {}
+    if m.get("t_err_pct") is not None and m.get("r_err_deg_per_100m") is not None:
+        text = f"{m['t_err_pct']:.2f} / {m['r_err_deg_per_100m']:.2f}"
+    elif m.get("rpe_m") is not None:
+        text = f"{m['rpe_m']:.3g} / {m.get('ate_m', float('nan')):.3g}"
+    else:
+        text = "-"
+    if fallback:
+        rate = (summary.get("fallback") or {}).get("constant_motion_rate")
+        text += f" ({100 * rate:.0f}% CM)" if rate is not None else ""
+    return text
+
+
+def table(runs: list[dict[str, Any]], fallback: bool = False) -> str:
+    """Markdown table: one row per configuration, one column per sequence."""
+    if not runs:
+        raise ValueError("aggregate_ablation: no summary.json found (did the runs finish?)")
+    groups = [g for g in GROUPS if any(g in r.get("choices", {}) for r in runs)]
+    varying = [g for g in groups if len({r.get("choices", {}).get(g) for r in runs}) > 1] or groups[:1]
+    sequences = sorted({r["sequence"] for r in runs})
+    long_metric = any((r.get("metrics") or {}).get("t_err_pct") is not None for r in runs)
+    rows: dict[tuple[str, ...], dict[str, str]] = {}
+    for r in runs:
+        key = tuple(str(r.get("choices", {}).get(g, "")) for g in varying)
+        rows.setdefault(key, {})[r["sequence"]] = cell(r, fallback)
+    unit = "t_err (%) / r_err (deg/100m)" if long_metric else "RPE (m) / ATE (m)"
+    head = "| " + " | ".join(varying + sequences) + " |"
+    sep = "|" + "|".join(["---"] * (len(varying) + len(sequences))) + "|"
+    lines = [f"Cells: {unit}" + ("; (CM) = constant-motion fallback rate" if fallback else ""), "", head, sep]
+    for key in sorted(rows):
+        lines.append("| " + " | ".join(list(key) + [rows[key].get(s, "") for s in sequences]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folders", nargs="+", type=Path)
+    parser.add_argument("--out", type=Path, default=None, help="also write the table to this markdown file")
+    parser.add_argument("--fallback", action="store_true", help="add the constant-motion fallback rate per cell")
+    args = parser.parse_args(argv)
+    text = table(load_runs(args.folders), args.fallback)
+    if args.out is not None:
+        args.out.write_text(text)
+    sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,154 @@
+"""Self-supervised depth losses: photometric error, warping by depth + pose, smoothness, depth consistency."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dfvo.data.synthetic import SyntheticWorld
+from dfvo.geometry.camera import pixel_grid
+from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
+from dfvo.losses.photometric import min_over_views, ssim_l1_error
+from dfvo.losses.reprojection import reproject
+from dfvo.losses.smoothness import edge_aware_smoothness
+
+H, W = 64, 192
+
+
+@pytest.fixture(scope="module")
+def world_frame() -> dict:
+    world = SyntheticWorld(seed=0, num_frames=6, height=H, width=W, scenario="straight")
+    frame = world.render(2, right=True, flow=True)
+    poses = world.poses()
+    frame["image_next"] = world.image(3)
+    frame["T_next_cur"] = (torch.linalg.inv(poses[3]) @ poses[2]).float()
+    return frame
+
+
+def test_ssim_l1_error_constant_images_by_hand() -> None:
+    a, b = torch.full((1, 3, 8, 8), 0.5), torch.full((1, 3, 8, 8), 0.6)
+    assert ssim_l1_error(a, a).abs().max() < 1e-6
+    # constant patches: SSIM = (2 mu_a mu_b + C1) / (mu_a^2 + mu_b^2 + C1), C1 = 0.01^2
+    ssim = (2 * 0.5 * 0.6 + 1e-4) / (0.25 + 0.36 + 1e-4)
+    expected = 0.85 * (1 - ssim) / 2 + 0.15 * 0.1
+    err = ssim_l1_error(a, b)
+    assert err.shape == (1, 1, 8, 8)
+    assert torch.allclose(err[..., 2:-2, 2:-2], torch.full((1, 1, 4, 4), expected), atol=1e-5)
+    assert torch.allclose(ssim_l1_error(a, b, alpha=0.0), torch.full((1, 1, 8, 8), 0.1), atol=1e-6)
+
+
+def test_min_over_views_ignores_out_of_view() -> None:
+    e1 = torch.tensor([1.0, 2.0, 3.0, 4.0]).reshape(1, 1, 1, 4)
+    e2 = torch.tensor([2.0, 1.0, 0.5, 9.0]).reshape(1, 1, 1, 4)
+    v1 = torch.tensor([True, True, True, False]).reshape(1, 1, 1, 4)
+    v2 = torch.tensor([True, True, False, False]).reshape(1, 1, 1, 4)
+    best, mask = min_over_views([e1, e2], [v1, v2])
+    assert best.flatten().tolist() == [1.0, 1.0, 3.0, 0.0]
+    assert mask.flatten().tolist() == [True, True, True, False]
+
+
+def test_reproject_matches_true_flow(world_frame: dict) -> None:
+    """Warping by the true depth and pose lands exactly where the world's true flow says (static pixels)."""
+    f = world_frame
+    rep = reproject(f["image_next"][None], f["depth"][None], f["T_next_cur"][None], f["K"][None])
+    u = (rep.grid[0, ..., 0] + 1) / 2 * (W - 1)
+    v = (rep.grid[0, ..., 1] + 1) / 2 * (H - 1)
+    grid = pixel_grid(H, W)
+    flow = torch.stack([u - grid[..., 0], v - grid[..., 1]])
+    static = f["flow_fwd_valid"][0] & ~f["dynamic_mask"][0]
+    assert static.float().mean() > 0.4
+    assert (rep.valid[0, 0] | ~static).all()
+    assert (flow - f["flow_fwd"])[:, static].abs().max() < 1e-2
+
+
+def test_reproject_masks_out_of_view() -> None:
+    K = torch.tensor([[[50.0, 0, 15.5], [0, 50.0, 7.5], [0, 0, 1]]])
+    T = torch.eye(4)[None].clone()
+    T[0, 0, 3] = 1.0  # source camera 1 m to the left: points shift right by 50 px at 1 m depth
+    rep = reproject(torch.rand(1, 3, 16, 32), torch.ones(1, 1, 16, 32), T, K)
+    # u + 50 stays inside [0, 31] for no column
+    assert not rep.valid.any()
+    T[0, 0, 3] = 0.1  # shift of 5 px: the last 5 columns leave the image
+    rep = reproject(torch.rand(1, 3, 16, 32), torch.ones(1, 1, 16, 32), T, K)
+    assert rep.valid[0, 0, :, :27].all() and not rep.valid[0, 0, :, 27:].any()
+    T[0, 2, 3] = -2.0  # points end up behind the source camera
+    assert not reproject(torch.rand(1, 3, 16, 32), torch.ones(1, 1, 16, 32), T, K).valid.any()
+
+
+@pytest.mark.parametrize("view", ["next", "stereo"])
+def test_photometric_small_for_true_depth_and_grows_with_wrong_depth(world_frame: dict, view: str) -> None:
+    f = world_frame
+    src, T = (f["image_next"], f["T_next_cur"]) if view == "next" else (f["image_right"], f["T_right_left"].float())
+    static = ~f["dynamic_mask"][0, 0] & (f["depth"][0, 0] < 999)  # not sky, not moving cars
+    medians, means = [], []
+    for factor in (1.0, 0.8, 1.25):
+        rep = reproject(src[None], f["depth"][None] * factor, T[None], f["K"][None])
+        err = ssim_l1_error(f["image"][None], rep.warped)[0, 0]
+        m = static & rep.valid[0, 0]
+        if view == "next":
+            m &= f["flow_fwd_valid"][0]  # occlusions are the per-pixel minimum's job, not this test's
+        medians.append(err[m].median())
+        means.append(err[m].mean())
+    assert medians[0] < 5e-3  # a perfect warp: error only from resampling texture at 64x192
+    assert medians[1] > 2 * medians[0] and medians[2] > 2 * medians[0]
+    assert means[1] > means[0] and means[2] > means[0]
+
+
+def test_smoothness_by_hand() -> None:
+    img = torch.zeros(1, 3, 4, 5)
+    assert edge_aware_smoothness(torch.full((1, 1, 4, 5), 3.0), img) == 0
+    ramp = torch.arange(1.0, 6.0).reshape(1, 1, 1, 5).expand(1, 1, 4, 5)
+    # normalised by its mean 3: x-steps of 1/3 everywhere, no y-steps
+    assert torch.allclose(edge_aware_smoothness(ramp, img), torch.tensor(1 / 3))
+    assert torch.allclose(edge_aware_smoothness(ramp, img, normalise=False), torch.tensor(1.0))
+    # scaling the field does not change the normalised loss
+    assert torch.allclose(edge_aware_smoothness(7 * ramp, img), torch.tensor(1 / 3))
+    # a step in the field coinciding with an image edge of height 1 is down-weighted by exp(-1)
+    step = torch.zeros(1, 1, 4, 5)
+    step[..., 3:] = 1.0
+    edge = torch.zeros(1, 3, 4, 5)
+    edge[..., 3:] = 1.0
+    plain = edge_aware_smoothness(step, img, normalise=False)
+    assert torch.allclose(plain, torch.tensor(4 / 16))
+    assert torch.allclose(edge_aware_smoothness(step, edge, normalise=False), plain * torch.exp(torch.tensor(-1.0)))
+    with pytest.raises(ValueError, match="resolution"):
+        edge_aware_smoothness(step, torch.zeros(1, 3, 4, 6))
+
+
+def test_depth_consistency_by_hand() -> None:
+    z = torch.full((1, 1, 2, 2), 2.0)
+    d = torch.tensor([2.0, 4.0, 1.0, 2.0]).reshape(1, 1, 2, 2)
+    diff = inverse_depth_difference(z, d)
+    assert torch.allclose(diff.flatten(), torch.tensor([0.0, 0.25, 0.5, 0.0]))
+    other = torch.tensor([0.1, 0.1, 0.1, 0.1]).reshape(1, 1, 2, 2)
+    valid_other = torch.tensor([True, True, False, True]).reshape(1, 1, 2, 2)
+    loss = depth_consistency_loss([diff, other], [None, valid_other])
+    assert torch.allclose(loss, torch.tensor((0.0 + 0.1 + 0.5 + 0.0) / 4))
+
+
+def test_consistency_zero_for_true_depths(world_frame: dict) -> None:
+    """Two views of the true depth agree: 1/z_j equals the next frame's depth sampled at the projection."""
+    f = world_frame
+    world = SyntheticWorld(seed=0, num_frames=6, height=H, width=W, scenario="straight")
+    depth_next = world.depth(3)[None]
+    rep = reproject(depth_next, f["depth"][None], f["T_next_cur"][None], f["K"][None])
+    diff = inverse_depth_difference(rep.depth_in_source, rep.warped)[0, 0]
+    static = f["flow_fwd_valid"][0] & ~f["dynamic_mask"][0, 0]
+    # bilinear sampling of a piecewise-smooth depth: exact up to interpolation inside surfaces
+    assert diff[static].median() < 1e-4
+    assert inverse_depth_difference(rep.depth_in_source, rep.warped * 1.5)[0, 0][static].median() > 1e-2
+
+
+def test_eigen_metrics_by_hand() -> None:
+    from dfvo.training.depth_module import eigen_depth_metrics
+    gt = torch.tensor([2.0, 4.0, 10.0, 500.0]).reshape(1, 1, 2, 2)  # 500 m (sky) is excluded
+    pred = 2 * gt
+    m = eigen_depth_metrics(pred, gt)
+    assert torch.allclose(m["abs_rel"], torch.tensor(1.0)) and m["a1"] == 0
+    assert torch.allclose(m["rmse"], torch.tensor(((4 + 16 + 100) / 3) ** 0.5))
+    s = eigen_depth_metrics(pred, gt, median_scaling=True)
+    assert s["abs_rel"] < 1e-6 and s["a1"] == 1
+    pred2 = gt.clone()
+    pred2[0, 0, 0, 0] = 2.6  # ratio 1.3 > 1.25
+    m2 = eigen_depth_metrics(pred2, gt)
+    assert torch.allclose(m2["abs_rel"], torch.tensor(0.3 / 3)) and torch.allclose(m2["a1"], torch.tensor(2 / 3))

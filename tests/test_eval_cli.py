@@ -1,0 +1,93 @@
+"""The ``python -m dfvo.evaluate`` command, ``evaluate_sequences`` (JSON, average, exclude) and the plots."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dfvo.eval import evaluate_sequences, evaluate_trajectory, plot_segment_errors, plot_trajectory, write_kitti_poses
+from dfvo.evaluate import parse_args
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _line(n: int, step: float) -> np.ndarray:
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 2, 3] = np.arange(n) * step
+    poses[:, 0, 3] = np.sin(np.arange(n) / 30.0) * 5
+    return poses
+
+
+@pytest.fixture
+def folders(tmp_path: Path) -> tuple[Path, Path]:
+    gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
+    for seq, n, drift in (("01", 300, 1.02), ("09", 250, 1.05), ("10", 60, 1.0)):
+        gt = _line(n, 1.0)
+        pred = gt.copy()
+        pred[:, :3, 3] *= drift
+        pred[:, 1, 3] += np.linspace(0, 3, n)
+        write_kitti_poses(gt_dir / f"{seq}.txt", gt)
+        write_kitti_poses(pred_dir / f"{seq}.txt", pred)
+    return gt_dir, pred_dir
+
+
+def test_parse_args_keeps_leading_zeros() -> None:
+    args = parse_args(["gt_dir=a", "pred_dir=b", "seqs=[09,10]", "exclude=[01]", "align=6dof"])
+    assert args["seqs"] == ["09", "10"] and args["exclude"] == ["01"] and args["align"] == "6dof"
+    with pytest.raises(ValueError, match="gt_dir"):
+        parse_args(["pred_dir=b"])
+    with pytest.raises(ValueError, match="bogus"):
+        parse_args(["gt_dir=a", "pred_dir=b", "bogus=1"])
+
+
+def test_evaluate_sequences_average_and_exclude(folders, tmp_path: Path) -> None:
+    gt_dir, pred_dir = folders
+    res = evaluate_sequences(gt_dir, pred_dir, None, "none", exclude=["01"], plot_dir=tmp_path / "plots")
+    assert list(res["sequences"]) == ["01", "09", "10"] and res["align"] == "none"
+    assert res["sequences"]["10"]["t_err_pct"] is None  # 60 m: shorter than the shortest segment
+    assert res["average"]["sequences"] == ["09", "10"]
+    assert res["average"]["t_err_pct"] == pytest.approx(res["sequences"]["09"]["t_err_pct"])
+    ate = [res["sequences"][s]["ate_m"] for s in ("09", "10")]
+    assert res["average"]["ate_m"] == pytest.approx(np.mean(ate))
+    direct = evaluate_trajectory(_line(250, 1.0), _pred09(), "none")
+    assert res["sequences"]["09"]["t_err_pct"] == pytest.approx(direct["t_err_pct"], rel=1e-6)
+    assert (tmp_path / "plots" / "09_trajectory.png").stat().st_size > 1000
+    assert (tmp_path / "plots" / "09_segment_errors.png").stat().st_size > 1000
+
+
+def _pred09() -> np.ndarray:
+    pred = _line(250, 1.0)
+    pred[:, :3, 3] *= 1.05
+    pred[:, 1, 3] += np.linspace(0, 3, 250)
+    return pred
+
+
+def test_cli_writes_json_and_table(folders, tmp_path: Path) -> None:
+    gt_dir, pred_dir = folders
+    out = tmp_path / "m.json"
+    proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}",
+                           "align=7dof", "seqs=[09,10]", f"out={out}"], cwd=REPO, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "alignment: 7dof" in proc.stdout and "average" in proc.stdout and " 09 " in proc.stdout
+    data = json.loads(out.read_text())
+    assert set(data["sequences"]) == {"09", "10"} and data["sequences"]["10"]["r_err_deg_per_100m"] is None
+    for key in ("t_err_pct", "r_err_deg_per_100m", "ate_m", "rpe_m", "rpe_deg", "num_frames", "per_length"):
+        assert key in data["sequences"]["09"]
+    bad = subprocess.run([sys.executable, "-m", "dfvo.evaluate", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}",
+                          "seqs=[05]"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "05.txt" in bad.stderr
+
+
+def test_plots_render_png(tmp_path: Path) -> None:
+    gt = _line(300, 1.0)
+    p = plot_trajectory(gt, gt * 1.1, tmp_path / "t.png", title="x")
+    assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 1000
+    res = evaluate_trajectory(gt, gt, "7dof")
+    q = plot_segment_errors(res["per_length"], tmp_path / "s.png")
+    assert q.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and q.stat().st_size > 1000

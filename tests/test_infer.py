@@ -1,0 +1,322 @@
+"""infer.py end to end: oracle sources on the synthetic world reproduce the true poses; outputs, interruption,
+checkpoint errors, multirun and the ablation table."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from dfvo.data.synthetic import SyntheticWorld
+from dfvo.inference.outputs import CSV_FIELDS
+from dfvo.sources import (
+    CheckpointError,
+    NetworkDepth,
+    NetworkFlow,
+    OracleDepth,
+    OracleFlow,
+    load_weights,
+    resolve_source,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+H, W = 96, 320  # low resolution keeps each run a few seconds
+SMALL = [f"img_res.height={H}", f"img_res.width={W}", "progress=false", "num_threads=1"]
+
+
+def _tracking_ready() -> bool:
+    try:
+        from dfvo.eval import evaluate_trajectory  # noqa: F401
+        from dfvo.tracking import TrackerConfig, VisualOdometry  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+needs_stack = pytest.mark.skipif(not _tracking_ready(), reason="dfvo.tracking / dfvo.eval not landed yet")
+
+
+def run_infer(*args: str, check: bool = True, timeout: float = 120) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1", HYDRA_FULL_ERROR="0")
+    proc = subprocess.run([sys.executable, "infer.py", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout, env=env)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"infer.py {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
+    return proc
+
+
+def read_poses(path: Path) -> np.ndarray:
+    rows = [list(map(float, line.split())) for line in path.read_text().splitlines()]
+    assert all(len(r) == 12 for r in rows), f"{path}: every line must hold 12 numbers"
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :4] = np.asarray(rows).reshape(-1, 3, 4)
+    return T
+
+
+def relative_errors(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pair translation (m) and rotation (deg) errors of the relative motions (direct loop)."""
+    t_err, r_err = [], []
+    for k in range(len(pred) - 1):
+        rel_gt = np.linalg.inv(gt[k]) @ gt[k + 1]
+        rel_pred = np.linalg.inv(pred[k]) @ pred[k + 1]
+        E = np.linalg.inv(rel_gt) @ rel_pred
+        t_err.append(np.linalg.norm(E[:3, 3]))
+        r_err.append(np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1, 1))))
+    return np.asarray(t_err), np.asarray(r_err)
+
+
+@needs_stack
+def test_oracle_synthetic_reproduces_true_poses_and_writes_outputs(tmp_path: Path) -> None:
+    n = 8
+    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "tensorboard.enabled=true", "tensorboard.every=3", *SMALL)
+    gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()
+    pred = read_poses(tmp_path / "synthetic_drive_s0.txt")
+    assert pred.shape == (n, 4, 4)
+    np.testing.assert_allclose(pred[0], np.eye(4), atol=1e-12)
+    t_err, r_err = relative_errors(gt, pred)
+    assert t_err.mean() <= 1e-3, t_err
+    assert r_err.max() <= 0.05, r_err
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["rpe_m"] <= 1e-3 and abs(metrics["rpe_m"] - t_err.mean()) < 1e-4
+    assert metrics["t_err_pct"] is None  # a few metres: shorter than the 100 m KITTI segments
+    with (tmp_path / "frames.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == CSV_FIELDS and [int(r["frame"]) for r in rows] == list(range(n))
+    assert rows[0]["tracker"] == "init" and all(r["tracker"] for r in rows[1:])
+    assert all(r["constant_motion"] == "0" for r in rows[1:])
+    assert (tmp_path / "trajectory.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["frames"] == n and summary["fps"] > 0 and summary["fallback"]["warn"] is False
+    assert {"flow", "depth", "tracker"} <= set(summary["timing_ms_per_frame"])
+    assert summary["choices"]["tracker"] == "hybrid" and summary["sources"]["flow"] == "oracle"
+    assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+
+
+@needs_stack
+def test_interrupted_run_leaves_a_valid_prefix(tmp_path: Path) -> None:
+    n = 200
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    proc = subprocess.Popen([sys.executable, "infer.py", f"out_dir={tmp_path}", f"data.num_frames={n}",
+                             "batch_size=1", *SMALL], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    path = tmp_path / "synthetic_drive_s0.txt"
+    deadline = time.time() + 90
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if path.exists() and len(path.read_text().splitlines()) >= 4:
+                break
+            time.sleep(0.05)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    pred = read_poses(path)  # every line complete
+    assert 4 <= len(pred) < n
+    gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()[: len(pred)]
+    t_err, _ = relative_errors(gt, pred)
+    assert t_err.mean() <= 1e-3
+    rows = list(csv.DictReader((tmp_path / "frames.csv").open()))
+    assert len(rows) >= len(pred) - 1
+
+
+@needs_stack
+def test_loud_warning_when_frames_fall_back(tmp_path: Path) -> None:
+    # selection needs 1000 x 100 valid pixels, more than a 96x320 image has: every frame falls back
+    proc = run_infer(f"out_dir={tmp_path}", "data.num_frames=4", "correspondence.num_correspondences=100",
+                     "+correspondence.min_valid_fraction=1000", *SMALL)
+    assert "WARNING: 3/3 frames (100%) fell back to constant motion" in proc.stderr
+    rows = list(csv.DictReader((tmp_path / "frames.csv").open()))
+    assert [r["constant_motion"] for r in rows[1:]] == ["1", "1", "1"]
+    assert all(r["fallback_reason"].startswith("selection failed") for r in rows[1:])
+    assert json.loads((tmp_path / "summary.json").read_text())["fallback"]["warn"] is True
+
+
+def test_unknown_tracker_setting_is_an_error() -> None:
+    from dfvo.inference.pipeline import tracker_config
+
+    cfg = OmegaConf.create({"tracker": {"name": "e", "tracker": "e"}, "correspondence": {"selction_method": "x"},
+                            "scale": {"scale_method": "iterative"}, "model_selection": {}})
+    with pytest.raises(ValueError, match="conf/correspondence: unknown tracker setting 'selction_method'"):
+        tracker_config(cfg)
+    cfg.correspondence = {"selection_method": "best_n", "grid": [4, 5]}
+    tc = tracker_config(cfg)
+    assert (tc.tracker, tc.selection_method, tc.scale_method, tc.grid) == ("e", "best_n", "iterative", (4, 5))
+
+
+def test_wrong_checkpoint_path_errors_clearly(tmp_path: Path) -> None:
+    missing = tmp_path / "no_such_flow.safetensors"
+    proc = run_infer(f"out_dir={tmp_path}", "data.num_frames=3", "flow=network", f"flow.checkpoint={missing}",
+                     *SMALL, check=False)
+    assert proc.returncode != 0
+    assert str(missing) in proc.stderr and "flow network" in proc.stderr
+
+
+def test_load_weights_names_path_and_expected_model(tmp_path: Path) -> None:
+    from safetensors.torch import save_file
+
+    from dfvo.models.depth_net import DepthNet
+
+    depth_net = DepthNet()
+    wrong = tmp_path / "depth_weights.safetensors"
+    save_file({k: v.contiguous() for k, v in depth_net.state_dict().items()}, str(wrong))
+    with pytest.raises(CheckpointError, match=r"depth_weights\.safetensors.*flow network"):
+        NetworkFlow(wrong, variant="tiny")
+    pickled = tmp_path / "pickled.pt"
+    torch.save({"state_dict": depth_net.state_dict(), "cfg": OmegaConf.create({"a": 1})}, pickled)
+    with pytest.raises(CheckpointError, match=r"pickled\.pt.*weights only"):
+        load_weights(DepthNet(), pickled, "depth network DepthNet")
+
+
+def test_network_depth_loads_lightning_style_checkpoint_and_scales(tmp_path: Path) -> None:
+    from dfvo.models.depth_net import DepthNet
+
+    torch.manual_seed(0)
+    ref = DepthNet().eval()
+    ckpt = tmp_path / "depth.ckpt"
+    torch.save({"state_dict": {f"depth_net.{k}": v for k, v in ref.state_dict().items()}, "epoch": 3}, ckpt)
+    src = NetworkDepth(ckpt, depth_scale=5.4)
+    img = torch.rand(1, 3, 64, 96)
+    depth = src(img)
+    assert depth.shape == (1, 1, 64, 96)
+    torch.testing.assert_close(depth, ref.depth(img) * 5.4)  # 64x96 is a multiple of 32: no resize
+    odd = src(torch.rand(1, 3, 70, 100))  # resized to 64x96 for the network and back
+    assert odd.shape == (1, 1, 70, 100) and torch.all(odd >= 0.1 * 5.4 - 1e-4)
+
+
+def test_network_flow_roundtrip_matches_model(tmp_path: Path) -> None:
+    from safetensors.torch import save_file
+
+    from dfvo.models.flow_net import FlowNet
+
+    torch.manual_seed(0)
+    ref = FlowNet("tiny").eval()
+    for p in ref.parameters():  # non-zero heads, so the comparison is not trivially zero flow
+        p.data.add_(0.01 * torch.randn_like(p))
+    path = tmp_path / "flow.safetensors"
+    save_file({f"net.{k}": v.contiguous() for k, v in ref.state_dict().items()}, str(path),
+              metadata={"variant": "tiny"})
+    src = NetworkFlow(path)
+    assert src.variant == "tiny"
+    a, b = torch.rand(1, 3, 64, 96), torch.rand(1, 3, 64, 96)
+    fwd, bwd = src(a, b)
+    with torch.no_grad():
+        rf, rb = ref.forward_backward(a, b)
+    torch.testing.assert_close(fwd, rf)
+    torch.testing.assert_close(bwd, rb)
+
+
+def test_oracle_sources_return_world_truth_and_refuse_real_data() -> None:
+    world = SyntheticWorld(seed=1, num_frames=4, height=32, width=64)
+    img = torch.zeros(2, 3, 32, 64)
+    fwd, bwd = OracleFlow(world)(img, img, [0, 2])
+    torch.testing.assert_close(fwd[1], world.flow(2, 3)[0])
+    torch.testing.assert_close(bwd[0], world.flow(1, 0)[0])
+    torch.testing.assert_close(OracleDepth(world)(img, [0, 1])[1], world.depth(1))
+    with pytest.raises(ValueError, match="only data=synthetic"):
+        OracleFlow(None)
+    missing = OmegaConf.create({"source": "auto", "checkpoint": "no/such/flow.safetensors"})
+    assert resolve_source(missing, world, "flow") == "oracle"
+    with pytest.raises(CheckpointError, match=r"no/such/flow\.safetensors does not exist"):
+        resolve_source(missing, None, "flow")
+    with pytest.raises(ValueError, match="one frame index per image"):
+        OracleDepth(world)(img, [0])
+
+
+def test_data_override_rewrite() -> None:
+    sys.path.insert(0, str(REPO))
+    from infer import _rewrite_data_override
+
+    assert _rewrite_data_override(["data=kitti_odom", "data.root=/x", "seq=06", "-m"]) == [
+        "dataset@data=kitti_odom", "data.root=/x", "seq=06", "-m"]
+
+
+def test_kitti_odom_command_reads_sequence_and_refuses_oracle(kitti_odom_root: Path, tmp_path: Path) -> None:
+    from dfvo.inference.frames import build_sequence
+
+    data = OmegaConf.load(REPO / "conf/dataset/kitti_odom.yaml")
+    data.root = str(kitti_odom_root)
+    seq = build_sequence(data, "06", OmegaConf.create({"height": 192, "width": 640}))
+    assert seq.name == "06" and seq.length == 51 and seq.poses.shape == (51, 4, 4)
+    assert seq.image(0).shape == (3, 192, 640)
+    proc = run_infer("data=kitti_odom", f"data.root={kitti_odom_root}", "seq=06", f"out_dir={tmp_path}",
+                     "progress=false", "flow=oracle", check=False)
+    assert proc.returncode != 0 and "only data=synthetic" in proc.stderr
+
+
+@needs_stack
+def test_tiny_multirun_and_ablation_table(tmp_path: Path) -> None:
+    sweep = tmp_path / "sweep"
+    run_infer("-m", "correspondence=local_best_k,best_n", "data.num_frames=4", f"hydra.sweep.dir={sweep}", *SMALL,
+              timeout=180)
+    summaries = sorted(sweep.rglob("summary.json"))
+    assert len(summaries) == 2
+    assert all(len(read_poses(p.parent / "synthetic_drive_s0.txt")) == 4 for p in summaries)
+    out = subprocess.run([sys.executable, "scripts/aggregate_ablation.py", str(sweep)], cwd=REPO,
+                         capture_output=True, text=True, check=True).stdout
+    lines = [line for line in out.splitlines() if line.startswith("| ")]
+    assert lines[0] == "| correspondence | synthetic_drive_s0 |"
+    assert {line.split("|")[1].strip() for line in lines[1:]} == {"best_n", "local_best_k"}
+
+
+def test_aggregate_table_from_hand_written_runs(tmp_path: Path) -> None:
+    sys.path.insert(0, str(REPO / "scripts"))
+    from aggregate_ablation import load_runs, table
+
+    def put(name: str, seq: str, tracker: str, metrics: dict) -> None:
+        d = tmp_path / name
+        d.mkdir()
+        (d / "summary.json").write_text(json.dumps({
+            "sequence": seq, "metrics": metrics, "fallback": {"constant_motion_rate": 0.25},
+            "choices": {"tracker": tracker, "correspondence": "local_best_k"}}))
+
+    put("a", "09", "hybrid", {"t_err_pct": 2.5, "r_err_deg_per_100m": 0.31, "rpe_m": 0.02, "ate_m": 5.0})
+    put("b", "09", "pnp", {"t_err_pct": 4.0, "r_err_deg_per_100m": 0.5, "rpe_m": 0.03, "ate_m": 9.0})
+    put("c", "10", "hybrid", {"t_err_pct": None, "r_err_deg_per_100m": None, "rpe_m": 0.0123, "ate_m": 0.456})
+    text = table(load_runs([tmp_path]), fallback=True)
+    lines = text.splitlines()
+    assert "| tracker | 09 | 10 |" in lines
+    assert "| hybrid | 2.50 / 0.31 (25% CM) | 0.0123 / 0.456 (25% CM) |" in lines
+    assert "| pnp | 4.00 / 0.50 (25% CM) |  |" in lines
+
+
+@pytest.mark.slow
+def test_kitti06_with_networks(kitti_odom_root: Path, tmp_path: Path) -> None:
+    for ckpt in ("checkpoints/flow.safetensors", "checkpoints/depth.safetensors"):
+        if not (REPO / ckpt).exists():
+            pytest.skip(f"needs the shipped {ckpt}")
+    run_infer("data=kitti_odom", f"data.root={kitti_odom_root}", "seq=06", "flow=network", "depth=network",
+              f"out_dir={tmp_path}", "progress=false", timeout=1200)
+    pred = read_poses(tmp_path / "06.txt")
+    assert pred.shape == (51, 4, 4)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["rpe_m"] <= 0.05
+
+
+def test_folder_and_kitti_raw_sequences(tmp_path: Path, kitti_raw_root: Path) -> None:
+    from PIL import Image
+
+    from dfvo.inference.frames import build_sequence
+
+    for k in range(3):
+        Image.fromarray(np.full((40, 80, 3), 60 * k, np.uint8)).save(tmp_path / f"f{k}.png")
+    data = OmegaConf.load(REPO / "conf/dataset/folder.yaml")
+    data.root, data.fx, data.fy, data.cx, data.cy, data.start = str(tmp_path), 100.0, 100.0, 39.5, 19.5, 1
+    seq = build_sequence(data, None, OmegaConf.create({"height": 20, "width": 40}))
+    assert seq.length == 2 and seq.poses is None and seq.world is None
+    torch.testing.assert_close(seq.image(1), torch.full((3, 20, 40), 120 / 255))  # frame 2 of the folder
+    torch.testing.assert_close(seq.K, torch.tensor([[50.0, 0, 19.5], [0, 50.0, 9.5], [0, 0, 1]]))
+    with pytest.raises(ValueError, match="data.fx"):
+        build_sequence(OmegaConf.merge(data, {"fx": None}), None, OmegaConf.create({"height": 20, "width": 40}))
+    raw = OmegaConf.load(REPO / "conf/dataset/kitti_raw.yaml")
+    raw.root, raw.end = str(kitti_raw_root.parent), 5
+    seq = build_sequence(raw, "2011_09_26_drive_0001", OmegaConf.create({"height": 192, "width": 640}))
+    assert seq.name == "2011_09_26_drive_0001_sync" and seq.length == 5 and seq.image(4).shape == (3, 192, 640)
