@@ -22,7 +22,8 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from dfvo.data.synthetic import SyntheticSequenceDataset
-from dfvo.training.depth_module import DepthPoseModule, eigen_depth_metrics
+from dfvo.eval.depth_metrics import compute_depth_metrics
+from dfvo.training.depth_module import DepthPoseModule
 
 
 def synthetic_metrics(module: DepthPoseModule, data: SyntheticSequenceDataset) -> dict[str, float]:
@@ -33,8 +34,8 @@ def synthetic_metrics(module: DepthPoseModule, data: SyntheticSequenceDataset) -
             preds.append(module(s["image"][None]))
             gts.append(s["depth"][None])
     pred, gt = torch.cat(preds), torch.cat(gts)
-    raw = eigen_depth_metrics(pred, gt, max_depth=80.0)
-    med = eigen_depth_metrics(pred, gt, max_depth=80.0, median_scaling=True)
+    raw = compute_depth_metrics(pred, gt, max_depth=80.0, median_scaling=False)
+    med = compute_depth_metrics(pred, gt, max_depth=80.0, median_scaling=True)
     return {"abs_rel": float(raw["abs_rel"]), "a1": float(raw["a1"]), "abs_rel_med": float(med["abs_rel"]),
             "a1_med": float(med["a1"])}
 

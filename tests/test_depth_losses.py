@@ -137,18 +137,3 @@ def test_consistency_zero_for_true_depths(world_frame: dict) -> None:
     # bilinear sampling of a piecewise-smooth depth: exact up to interpolation inside surfaces
     assert diff[static].median() < 1e-4
     assert inverse_depth_difference(rep.depth_in_source, rep.warped * 1.5)[0, 0][static].median() > 1e-2
-
-
-def test_eigen_metrics_by_hand() -> None:
-    from dfvo.training.depth_module import eigen_depth_metrics
-    gt = torch.tensor([2.0, 4.0, 10.0, 500.0]).reshape(1, 1, 2, 2)  # 500 m (sky) is excluded
-    pred = 2 * gt
-    m = eigen_depth_metrics(pred, gt)
-    assert torch.allclose(m["abs_rel"], torch.tensor(1.0)) and m["a1"] == 0
-    assert torch.allclose(m["rmse"], torch.tensor(((4 + 16 + 100) / 3) ** 0.5))
-    s = eigen_depth_metrics(pred, gt, median_scaling=True)
-    assert s["abs_rel"] < 1e-6 and s["a1"] == 1
-    pred2 = gt.clone()
-    pred2[0, 0, 0, 0] = 2.6  # ratio 1.3 > 1.25
-    m2 = eigen_depth_metrics(pred2, gt)
-    assert torch.allclose(m2["abs_rel"], torch.tensor(0.3 / 3)) and torch.allclose(m2["a1"], torch.tensor(2 / 3))

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
+from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.photometric import min_over_views, ssim_l1_error
 from dfvo.losses.reprojection import reproject
@@ -38,34 +39,6 @@ MODEL_TYPE_KEY = "dfvo_model_type"
 def _get(cfg: Any, key: str, default: Any) -> Any:
     value = OmegaConf.select(cfg, key, default=default)
     return default if value is None else value
-
-
-def eigen_depth_metrics(pred: torch.Tensor, gt: torch.Tensor, min_depth: float = 1e-3, max_depth: float = 80.0,
-                        median_scaling: bool = False) -> dict[str, torch.Tensor]:
-    """Eigen et al. metrics (abs rel, sq rel, rmse, δ<1.25) over pixels with ``min_depth < gt < max_depth``.
-
-    Args:
-        pred, gt: (B,1,H,W) depths in metres. median_scaling: scale ``pred`` by median(gt)/median(pred)
-            per image (for monocular models).
-
-    Returns:
-        dict of scalar tensors averaged over the images of the batch (abs_rel, sq_rel, rmse, a1).
-    """
-    out: dict[str, list[torch.Tensor]] = {"abs_rel": [], "sq_rel": [], "rmse": [], "a1": []}
-    for p, g in zip(pred, gt):
-        mask = (g > min_depth) & (g < max_depth)
-        if not mask.any():
-            continue
-        p, g = p[mask], g[mask]
-        if median_scaling:
-            p = p * (g.median() / p.median())
-        p = p.clamp(min_depth, max_depth)
-        ratio = torch.maximum(p / g, g / p)
-        out["abs_rel"].append(((p - g).abs() / g).mean())
-        out["sq_rel"].append(((p - g) ** 2 / g).mean())
-        out["rmse"].append(((p - g) ** 2).mean().sqrt())
-        out["a1"].append((ratio < 1.25).float().mean())
-    return {k: torch.stack(v).mean() for k, v in out.items() if v}
 
 
 class DepthPoseModule(L.LightningModule):
@@ -199,12 +172,11 @@ class DepthPoseModule(L.LightningModule):
         bs = batch["image"].shape[0]
         depth = self(batch["image"])
         if "depth" in batch:
-            metrics = eigen_depth_metrics(depth, batch["depth"], max_depth=80.0, median_scaling=False)
-            scaled = eigen_depth_metrics(depth, batch["depth"], max_depth=80.0, median_scaling=True)
-            for k, v in metrics.items():
-                self.log(f"val/{k}", v, batch_size=bs, sync_dist=True, prog_bar=k == "abs_rel")
-            for k, v in scaled.items():
-                self.log(f"val/{k}_med", v, batch_size=bs, sync_dist=True)
+            metrics = compute_depth_metrics(depth, batch["depth"], max_depth=80.0, median_scaling=False)
+            scaled = compute_depth_metrics(depth, batch["depth"], max_depth=80.0, median_scaling=True)
+            for k in DEPTH_METRIC_NAMES:
+                self.log(f"val/{k}", metrics[k], batch_size=bs, sync_dist=True, prog_bar=k == "abs_rel")
+                self.log(f"val/{k}_med", scaled[k], batch_size=bs, sync_dist=True)
         if batch_idx == 0:
             self._log_images(batch, {"disp": self.depth_net(batch["image"])[0]}, "val")
 
