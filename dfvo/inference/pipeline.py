@@ -215,13 +215,17 @@ def _finish(cfg: DictConfig, seq: FrameSequence, pred: np.ndarray, rows: list[di
         "fallback": fallback_summary(rows, float(cfg.get("warn_fallback_rate", 0.2))),
         "choices": _choices(),
     }
-    from dfvo.eval import evaluate_trajectory, plot_trajectory
+    from dfvo.eval import align_trajectory, evaluate_trajectory, plot_trajectory
 
     metrics = None
+    plotted, title = pred, seq.name
     if seq.poses is not None:
         metrics = {"sequence": seq.name, **evaluate_trajectory(seq.poses, pred, align=str(cfg.align))}
         write_json(out / "metrics.json", metrics)
-    plot_trajectory(seq.poses, pred, out / "trajectory.png", title=seq.name)
+        # the prediction starts at identity, the ground truth in its own world frame: plot them as evaluated
+        plotted, _ = align_trajectory(seq.poses, pred, str(cfg.align))
+        title = f"{seq.name} (prediction aligned: {cfg.align})"
+    plot_trajectory(seq.poses, plotted, out / "trajectory.png", title=title)
     summary["metrics"] = metrics
     write_json(out / "summary.json", summary)
     if writer is not None:
