@@ -10,7 +10,8 @@ import importlib
 from typing import Any
 
 _EXPORTS = {
-    "dfvo.eval.alignment": ("ALIGN_MODES", "align_trajectory", "apply_alignment", "estimate_alignment", "umeyama"),
+    "dfvo.eval.alignment": ("ALIGN_MODES", "align_trajectory", "apply_alignment", "estimate_alignment",
+                            "rebase_to_first", "umeyama"),
     "dfvo.eval.depth_metrics": ("compute_depth_metrics", "depth_errors"),
     "dfvo.eval.flow_metrics": ("compute_flow_metrics", "read_kitti_flow", "read_png16", "write_kitti_flow",
                                "write_png16"),

@@ -42,6 +42,16 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[
     return scale, rot, trans
 
 
+def rebase_to_first(poses: np.ndarray) -> np.ndarray:
+    """Express ``(N,4,4)`` poses ``T_w_c`` relative to their first frame: ``inv(T_w_0) @ T_w_k`` (first = identity).
+
+    The DF-VO toolkit does this to both trajectories before any alignment; it matters for ``scale`` and
+    ``none`` alignment and for ATE when a trajectory does not start at the identity.
+    """
+    poses = np.asarray(poses, np.float64)
+    return np.linalg.inv(poses[0]) @ poses
+
+
 def estimate_alignment(gt: np.ndarray, pred: np.ndarray, align: str) -> tuple[float, np.ndarray, np.ndarray]:
     """Alignment ``(s, R, t)`` of ``pred`` ``(N,4,4)`` onto ``gt`` ``(N,4,4)`` positions for ``align``.
 

@@ -9,8 +9,9 @@ Convention:
     ``r_err = acos(clip(0.5 (trace(R(E)) - 1), -1, 1)) / L``. The sequence value is the mean over *all*
     segments of all lengths (not the mean of per-length means); reported as % and deg/100 m.
     RPE: mean over consecutive pairs of ``inv(ΔG) ΔP`` translation norm (m) and angle (deg).
-    ATE: RMSE of position differences. The chosen alignment is applied to the whole predicted trajectory
-    before all metrics (as the DF-VO toolkit does).
+    ATE: RMSE of position differences. As the DF-VO toolkit does, both trajectories are first expressed
+    relative to their first frame (``inv(T_w_0) @ T_w_k``), then the chosen alignment is applied to the whole
+    predicted trajectory before all metrics.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import warnings
 
 import numpy as np
 
-from dfvo.eval.alignment import ALIGN_MODES, align_trajectory, umeyama
+from dfvo.eval.alignment import ALIGN_MODES, align_trajectory, rebase_to_first, umeyama
 
 SEGMENT_LENGTHS = (100, 200, 300, 400, 500, 600, 700, 800)
 STEP_SIZE = 10
@@ -104,6 +105,7 @@ def evaluate_trajectory(gt: np.ndarray, pred: np.ndarray, align: str = "7dof") -
     if align not in ALIGN_MODES:
         raise ValueError(f"align={align!r}: expected one of {ALIGN_MODES}")
     gt, pred = _check_pair(gt, pred)
+    gt, pred = rebase_to_first(gt), rebase_to_first(pred)
     aligned, params = align_trajectory(gt, pred, align)
     sim3_scale = umeyama(pred[:, :3, 3], gt[:, :3, 3], with_scale=True)[0]
     scale_warning = None

@@ -51,10 +51,11 @@ def evaluate_sequences(gt_dir: str | Path, pred_dir: str | Path, seqs: list[str]
         res = evaluate_trajectory(gt, pred, align=align)
         results[seq] = res
         if plot_dir is not None:
-            from dfvo.eval.alignment import align_trajectory
+            from dfvo.eval.alignment import align_trajectory, rebase_to_first
             from dfvo.eval.plots import plot_segment_errors, plot_trajectory
 
-            plot_trajectory(gt, align_trajectory(gt, pred, align)[0], Path(plot_dir) / f"{seq}_trajectory.png",
+            gt0, pred0 = rebase_to_first(gt), rebase_to_first(pred)
+            plot_trajectory(gt0, align_trajectory(gt0, pred0, align)[0], Path(plot_dir) / f"{seq}_trajectory.png",
                             title=f"{seq} (align={align})")
             plot_segment_errors(res["per_length"], Path(plot_dir) / f"{seq}_segment_errors.png", title=seq)
     excluded = {str(e) for e in (exclude or [])}

@@ -215,17 +215,18 @@ def _finish(cfg: DictConfig, seq: FrameSequence, pred: np.ndarray, rows: list[di
         "fallback": fallback_summary(rows, float(cfg.get("warn_fallback_rate", 0.2))),
         "choices": _choices(),
     }
-    from dfvo.eval import align_trajectory, evaluate_trajectory, plot_trajectory
+    from dfvo.eval import align_trajectory, evaluate_trajectory, plot_trajectory, rebase_to_first
 
     metrics = None
-    plotted, title = pred, seq.name
+    gt_plotted, plotted, title = None, pred, seq.name
     if seq.poses is not None:
         metrics = {"sequence": seq.name, **evaluate_trajectory(seq.poses, pred, align=str(cfg.align))}
         write_json(out / "metrics.json", metrics)
-        # the prediction starts at identity, the ground truth in its own world frame: plot them as evaluated
-        plotted, _ = align_trajectory(seq.poses, pred, str(cfg.align))
+        # plot the trajectories as they are evaluated: relative to their first frame, prediction aligned
+        gt_plotted = rebase_to_first(seq.poses)
+        plotted, _ = align_trajectory(gt_plotted, rebase_to_first(pred), str(cfg.align))
         title = f"{seq.name} (prediction aligned: {cfg.align})"
-    plot_trajectory(seq.poses, plotted, out / "trajectory.png", title=title)
+    plot_trajectory(gt_plotted, plotted, out / "trajectory.png", title=title)
     summary["metrics"] = metrics
     write_json(out / "summary.json", summary)
     if writer is not None:
