@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.camera import backproject_points, pixel_grid, project_points, transform_points
+from dfvo.matching.flow_warp import normalise_pixels
 
 
 @dataclass
@@ -61,7 +62,7 @@ def reproject(source: torch.Tensor, depth_target: torch.Tensor, T_source_target:
     tol = 1e-3  # pixels: border pixels reprojected onto themselves stay inside despite rounding
     valid = ((z > 1e-3) & (u >= -tol) & (u <= W - 1 + tol) & (v >= -tol) & (v <= H - 1 + tol)
              & torch.isfinite(u) & torch.isfinite(v))
-    norm = torch.stack([2.0 * u / max(W - 1, 1) - 1.0, 2.0 * v / max(H - 1, 1) - 1.0], dim=-1)
+    norm = normalise_pixels(pix, H, W)
     norm = torch.where(valid[..., None], norm, torch.full_like(norm, 2.0)).reshape(B, H, W, 2)
     warped = F.grid_sample(source, norm, mode="bilinear", padding_mode="border", align_corners=True)
     return Reprojection(warped, valid.reshape(B, 1, H, W), z.reshape(B, 1, H, W), norm)

@@ -46,6 +46,15 @@ def inside_image(points: torch.Tensor, height: int, width: int) -> torch.Tensor:
     return (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
 
 
+def normalise_pixels(points: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(..., 2) pixel positions -> ``grid_sample`` coordinates for ``align_corners=True``.
+
+    Pixel centre 0 maps to -1 and ``W-1`` (``H-1``) to +1, matching :mod:`dfvo.geometry.camera`'s convention.
+    """
+    return torch.stack([2.0 * points[..., 0] / max(width - 1, 1) - 1.0,
+                        2.0 * points[..., 1] / max(height - 1, 1) - 1.0], dim=-1)
+
+
 def warp_by_flow(source: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Sample ``source`` at ``x + flow(x)`` (bilinear backward warping).
 
@@ -65,10 +74,6 @@ def warp_by_flow(source: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor
     _, _, H, W = source.shape
     target = flow_to_sample_points(flow.to(source.dtype))
     valid = inside_image(target, H, W).unsqueeze(1)
-    # Normalised coordinates for align_corners=True: pixel centre 0 -> -1 and W-1 -> +1.
-    norm_u = 2.0 * target[..., 0] / max(W - 1, 1) - 1.0
-    norm_v = 2.0 * target[..., 1] / max(H - 1, 1) - 1.0
-    grid = torch.stack([norm_u, norm_v], dim=-1)
-    grid = torch.nan_to_num(grid, nan=0.0, posinf=2.0, neginf=-2.0)
+    grid = torch.nan_to_num(normalise_pixels(target, H, W), nan=0.0, posinf=2.0, neginf=-2.0)
     warped = F.grid_sample(source, grid, mode="bilinear", padding_mode="border", align_corners=True)
     return warped, valid
