@@ -1,6 +1,12 @@
 """Speed of the depth network and of one depth-stereo training step on this machine; prints JSON.
 
-    python benchmarks/depth_net.py [--height 192 --width 640 --threads 1 --batch 4 --repeats 5]
+    python benchmarks/depth_net.py [--height 192 --width 640 --threads 1 --batch 4 --repeats 5] [--skip-train]
+
+``depth_net_forward_ms`` is the inference path that the pipeline uses (``DepthNet.depth``, called by
+``dfvo.sources.networks.NetworkDepth``: scale-0 head only, folded batch norms, channels_last);
+``depth_net_train_forward_ms`` the training forward (all 4 disparity scales) in eval mode without gradients.
+The forward variants are timed interleaved (one call of each per round, order alternating) so that a shared,
+busy machine affects them alike; ``inference_speedup`` is the ratio of their medians.
 """
 
 from __future__ import annotations
@@ -9,6 +15,7 @@ import argparse
 import json
 import platform
 import time
+from collections.abc import Callable
 
 import torch
 from omegaconf import OmegaConf
@@ -18,14 +25,23 @@ from dfvo.models.resnet import ResNet18Encoder
 from dfvo.training.depth_module import DepthPoseModule
 
 
-def _time(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000.0 * sorted(times)[len(times) // 2]
+def _time(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``fn()`` in ms over ``repeats`` calls, after one warm-up call."""
+    return _time_interleaved({"fn": fn}, repeats)["fn"]
+
+
+def _time_interleaved(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+    """Median wall time in ms of each function, calling them in turn (order reversed every other round)."""
+    for fn in fns.values():
+        fn()  # warm-up (also builds DepthNet's cached inference copy)
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    names = list(fns)
+    for r in range(repeats):
+        for k in names if r % 2 == 0 else names[::-1]:
+            t0 = time.perf_counter()
+            fns[k]()
+            times[k].append(time.perf_counter() - t0)
+    return {k: 1000.0 * sorted(t)[len(t) // 2] for k, t in times.items()}
 
 
 def main() -> None:
@@ -37,14 +53,24 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=4, help="training batch size")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--skip-train", action="store_true", help="time the forward passes only")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     x = torch.rand(1, 3, a.height, a.width)
     net, enc = DepthNet().eval(), ResNet18Encoder(1).eval()
     with torch.no_grad():
-        t_depth = _time(lambda: net(x), a.repeats)
-        t_enc = _time(lambda: enc(x), a.repeats)
+        forwards = {"depth": lambda: net.depth(x), "train_forward": lambda: net(x), "encoder": lambda: enc(x)}
+        t = _time_interleaved(forwards, a.repeats)
+    result = {
+        "machine": f"{platform.processor() or platform.machine()}, torch threads {a.threads}",
+        "depth_net_forward_ms": round(t["depth"], 1), "depth_net_train_forward_ms": round(t["train_forward"], 1),
+        "inference_speedup": round(t["train_forward"] / t["depth"], 3), "encoder_forward_ms": round(t["encoder"], 1),
+        "forward_resolution": f"{a.width}x{a.height}",
+    }
+    if a.skip_train:
+        print(json.dumps(result))
+        return
     cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "stereo": True, "temporal": True}})
     module = DepthPoseModule(cfg)
     opt = torch.optim.Adam(module.parameters(), lr=1e-4)
@@ -62,13 +88,9 @@ def main() -> None:
         opt.step()
 
     t_step = _time(step, max(2, a.repeats // 2))
-    print(json.dumps({
-        "machine": f"{platform.processor() or platform.machine()}, torch threads {a.threads}",
-        "depth_net_forward_ms": round(t_depth, 1), "encoder_forward_ms": round(t_enc, 1),
-        "forward_resolution": f"{a.width}x{a.height}",
-        "train_step_ms": round(t_step, 1), "train_resolution": f"{W}x{H}", "train_batch": B,
-        "train_model": "depth_stereo (stereo + prev/next with pose net)",
-    }))
+    result.update(train_step_ms=round(t_step, 1), train_resolution=f"{W}x{H}", train_batch=B,
+                  train_model="depth_stereo (stereo + prev/next with pose net)")
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":

@@ -35,14 +35,22 @@ from dfvo.training.flow_module import FlowModule  # noqa: E402
 
 
 class Cached(Dataset):
-    def __init__(self, items: list[dict]) -> None:
-        self.items = items
+    """In-memory items; with ``gray_prob`` > 0 each item's images become grey (luma in all three channels) with
+    that probability, so a network trained on colour also sees KITTI odometry's greyscale cameras."""
+
+    def __init__(self, items: list[dict], gray_prob: float = 0.0) -> None:
+        self.items, self.gray_prob = items, gray_prob
 
     def __len__(self) -> int:
         return len(self.items)
 
     def __getitem__(self, i: int) -> dict:
-        return self.items[i]
+        item = self.items[i]
+        if self.gray_prob > 0 and torch.rand(()) < self.gray_prob:
+            luma = torch.tensor([0.299, 0.587, 0.114]).view(3, 1, 1)
+            item = {k: (v * luma).sum(0, keepdim=True).expand(3, -1, -1).clone() if k.startswith("image") else v
+                    for k, v in item.items()}
+        return item
 
 
 def synthetic_items(seeds: list[int], num_frames: int, h: int, w: int) -> list[dict]:
@@ -79,7 +87,7 @@ class JsonLog(L.Callback):
 
 
 def run_stage(name: str, cfg, items: list[dict], out: Path, minutes: float, batch: int,
-              eval_pairs: list[dict]) -> Path:
+              eval_pairs: list[dict], gray_prob: float = 0.0) -> Path:
     module = FlowModule(cfg)
     logger = L.pytorch.loggers.TensorBoardLogger(str(out), name=name)
     ckpt = L.pytorch.callbacks.ModelCheckpoint(dirpath=str(out / name), save_last=True, every_n_train_steps=100)
@@ -87,7 +95,7 @@ def run_stage(name: str, cfg, items: list[dict], out: Path, minutes: float, batc
     trainer = L.Trainer(max_epochs=10_000, logger=logger, callbacks=[ckpt, stop],
                         accelerator="cpu", devices=1, enable_progress_bar=False, log_every_n_steps=5,
                         limit_val_batches=0, num_sanity_val_steps=0, enable_model_summary=False)
-    trainer.fit(module, DataLoader(Cached(items), batch_size=batch, shuffle=True, drop_last=True))
+    trainer.fit(module, DataLoader(Cached(items, gray_prob), batch_size=batch, shuffle=True, drop_last=True))
     path = out / name / "final.ckpt"
     trainer.save_checkpoint(path)
     print(json.dumps({"stage": name, "eval_after": True, "steps": trainer.global_step, "checkpoint": str(path),
@@ -112,6 +120,9 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--kitti-raw", default="../shared/data/kitti_raw/2011_09_26")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--init", default=None, help="start the supervised stage from this FlowModule .ckpt / FlowNet "
+                   "state dict (e.g. an earlier run's supervised/final.ckpt)")
+    p.add_argument("--gray-prob", type=float, default=0.0, help="probability of greyscale training pairs")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -132,11 +143,13 @@ def main() -> None:
                                                     "occlusion": True}}})
 
     print(json.dumps({"stage": "untrained", **evaluate_pairs(FlowNet(args.variant), eval_pairs)}), flush=True)
-    sup = run_stage("supervised", model_cfg("supervised", args.sup_lr, None), train, out, args.sup_minutes,
-                    args.batch, eval_pairs)
+    sup = run_stage("supervised", model_cfg("supervised", args.sup_lr, args.init), train, out, args.sup_minutes,
+                    args.batch, eval_pairs, args.gray_prob)
+    if args.self_minutes <= 0:
+        return
     kitti = kitti_raw_items(Path(args.kitti_raw), h, w)
     run_stage("self", model_cfg("self", args.self_lr, str(sup)), kitti, out, args.self_minutes, max(1, args.batch // 2),
-              eval_pairs)
+              eval_pairs, args.gray_prob)
 
 
 if __name__ == "__main__":

@@ -75,12 +75,19 @@ def table(runs: list[dict[str, Any]], fallback: bool = False) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folders", nargs="+", type=Path)
-    parser.add_argument("--out", type=Path, default=None, help="also write the table to this markdown file")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="also write the table to this markdown file (missing folders are created)")
     parser.add_argument("--fallback", action="store_true", help="add the constant-motion fallback rate per cell")
     args = parser.parse_args(argv)
     text = table(load_runs(args.folders), args.fallback)
     if args.out is not None:
-        args.out.write_text(text)
+        try:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(text)
+        except OSError as err:
+            blocker = next((d for d in args.out.parents if d.exists() and not d.is_dir()), None)
+            reason = f"{blocker} is a file, not a folder" if blocker is not None else (err.strerror or str(err))
+            parser.error(f"--out {args.out}: cannot write the table ({reason})")
     sys.stdout.write(text)
     return 0
 

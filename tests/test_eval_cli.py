@@ -91,3 +91,34 @@ def test_plots_render_png(tmp_path: Path) -> None:
     res = evaluate_trajectory(gt, gt, "7dof")
     q = plot_segment_errors(res["per_length"], tmp_path / "s.png")
     assert q.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and q.stat().st_size > 1000
+
+
+@pytest.mark.parametrize("flag", ["--help", "-h"])
+def test_cli_help_prints_usage_and_exits_0(flag: str) -> None:
+    proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", flag], cwd=REPO, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("usage: python -m dfvo.evaluate gt_dir=")
+    for text in ("pred_dir=PATH", "align=MODE", "default: 7dof", "seqs=[A,B]", "exclude=[A]", "out=FILE",
+                 "plot_dir=DIR", "example:"):
+        assert text in proc.stdout, text
+
+
+def test_integer_sequence_ids_get_two_digits(folders, tmp_path: Path) -> None:
+    """seqs=[9,10] / exclude=[1] name 09.txt, 10.txt and 01, as infer.py seq=9 writes 09.txt (KittiOdometry)."""
+    from dfvo.data.kitti_odometry import KittiOdometry
+    from dfvo.evaluate import sequence_name
+
+    args = parse_args(["gt_dir=a", "pred_dir=b", "seqs=[9, 10]", "exclude=[1]"])
+    assert args["seqs"] == ["09", "10"] and args["exclude"] == ["01"]
+    assert parse_args(["gt_dir=a", "pred_dir=b", "seqs=6"])["seqs"] == ["06"]
+    assert [sequence_name(s) for s in (6, "6", "06", "123", "2011_09_26_drive_0001_sync")] == [
+        "06", "06", "06", "123", "2011_09_26_drive_0001_sync"]
+    for seq in ("6", "06", "123", "drive"):  # the same rule as the dataset that names infer.py's pose file
+        with pytest.raises(FileNotFoundError, match=rf"sequences[/\\]{sequence_name(seq)}"):
+            KittiOdometry(tmp_path / "none", seq)
+    gt_dir, pred_dir = folders
+    proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}",
+                           "seqs=[9,10]", "align=none"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert " 09 " in proc.stdout and " 10 " in proc.stdout

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from dfvo.data.synthetic import SyntheticWorld
@@ -32,6 +33,7 @@ from dfvo.sources import (
 REPO = Path(__file__).resolve().parents[1]
 H, W = 96, 320  # low resolution keeps each run a few seconds
 SMALL = [f"img_res.height={H}", f"img_res.width={W}", "progress=false", "num_threads=1"]
+ORACLE = ["flow=oracle", "depth=oracle"]  # the default (auto) uses the shipped checkpoints
 
 
 def _tracking_ready() -> bool:
@@ -78,7 +80,7 @@ def relative_errors(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.nd
 @needs_stack
 def test_oracle_synthetic_reproduces_true_poses_and_writes_outputs(tmp_path: Path) -> None:
     n = 8
-    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "tensorboard.enabled=true", "tensorboard.every=3", *SMALL)
+    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "tensorboard.enabled=true", "tensorboard.every=3", *SMALL, *ORACLE)
     gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()
     pred = read_poses(tmp_path / "synthetic_drive_s0.txt")
     assert pred.shape == (n, 4, 4)
@@ -107,7 +109,7 @@ def test_interrupted_run_leaves_a_valid_prefix(tmp_path: Path) -> None:
     n = 200
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.Popen([sys.executable, "infer.py", f"out_dir={tmp_path}", f"data.num_frames={n}",
-                             "batch_size=1", *SMALL], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                             "batch_size=1", *SMALL, *ORACLE], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     path = tmp_path / "synthetic_drive_s0.txt"
     deadline = time.time() + 90
@@ -132,7 +134,7 @@ def test_interrupted_run_leaves_a_valid_prefix(tmp_path: Path) -> None:
 def test_loud_warning_when_frames_fall_back(tmp_path: Path) -> None:
     # selection needs 1000 x 100 valid pixels, more than a 96x320 image has: every frame falls back
     proc = run_infer(f"out_dir={tmp_path}", "data.num_frames=4", "correspondence.num_correspondences=100",
-                     "+correspondence.min_valid_fraction=1000", *SMALL)
+                     "+correspondence.min_valid_fraction=1000", *SMALL, *ORACLE)
     assert "WARNING: 3/3 frames (100%) fell back to constant motion" in proc.stderr
     rows = list(csv.DictReader((tmp_path / "frames.csv").open()))
     assert [r["constant_motion"] for r in rows[1:]] == ["1", "1", "1"]
@@ -255,7 +257,7 @@ def test_kitti_odom_command_reads_sequence_and_refuses_oracle(kitti_odom_root: P
 @needs_stack
 def test_tiny_multirun_and_ablation_table(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
-    run_infer("-m", "correspondence=local_best_k,best_n", "data.num_frames=4", f"hydra.sweep.dir={sweep}", *SMALL,
+    run_infer("-m", "correspondence=local_best_k,best_n", "data.num_frames=4", f"hydra.sweep.dir={sweep}", *SMALL, *ORACLE,
               timeout=180)
     summaries = sorted(sweep.rglob("summary.json"))
     assert len(summaries) == 2
@@ -320,3 +322,132 @@ def test_folder_and_kitti_raw_sequences(tmp_path: Path, kitti_raw_root: Path) ->
     raw.root, raw.end = str(kitti_raw_root.parent), 5
     seq = build_sequence(raw, "2011_09_26_drive_0001", OmegaConf.create({"height": 192, "width": 640}))
     assert seq.name == "2011_09_26_drive_0001_sync" and seq.length == 5 and seq.image(4).shape == (3, 192, 640)
+
+
+def test_network_flow_runs_at_its_input_size_and_rescales_vectors(tmp_path: Path) -> None:
+    """With input_size (or the checkpoint's height/width metadata) the network sees resized images and its flow
+    comes back at the image size with vectors scaled by the size ratios (96→192: x2 in u, 64→192: x3 in v)."""
+    from safetensors.torch import save_file
+
+    from dfvo.models.flow_net import FlowNet
+
+    torch.manual_seed(0)
+    ref = FlowNet("tiny").eval()
+    for p in ref.parameters():
+        p.data.add_(0.01 * torch.randn_like(p))
+    path = tmp_path / "flow.safetensors"
+    save_file({k: v.contiguous() for k, v in ref.state_dict().items()}, str(path),
+              metadata={"variant": "tiny", "height": "64", "width": "96"})
+    src = NetworkFlow(path)
+    assert src.input_size == (64, 96)
+    a, b = torch.rand(1, 3, 64, 96), torch.rand(1, 3, 64, 96)
+    big_a = F.interpolate(a, size=(192, 192), mode="nearest")
+    big_b = F.interpolate(b, size=(192, 192), mode="nearest")
+    fwd, bwd = src(big_a, big_b)
+    assert fwd.shape == bwd.shape == (1, 2, 192, 192)
+    with torch.no_grad():
+        rf, _ = ref.forward_backward(*(F.interpolate(x, size=(64, 96), mode="bilinear", align_corners=False,
+                                                     antialias=True) for x in (big_a, big_b)))
+    expect_u = F.interpolate(rf[:, :1], size=(192, 192), mode="bilinear", align_corners=False) * 2.0
+    expect_v = F.interpolate(rf[:, 1:], size=(192, 192), mode="bilinear", align_corners=False) * 3.0
+    torch.testing.assert_close(fwd, torch.cat([expect_u, expect_v], 1))
+    assert NetworkFlow(path, input_size=[32, 64]).input_size == (32, 64)
+    with pytest.raises(ValueError, match="flow.input_size"):
+        NetworkFlow(path, input_size=[8, 8])
+
+
+def test_network_depth_runs_at_checkpoint_input_size(tmp_path: Path) -> None:
+    from safetensors.torch import save_file
+
+    from dfvo.models.depth_net import DepthNet
+
+    torch.manual_seed(0)
+    ref = DepthNet().eval()
+    path = tmp_path / "depth.safetensors"
+    save_file({k: v.contiguous() for k, v in ref.state_dict().items()}, str(path),
+              metadata={"height": "64", "width": "96"})
+    src = NetworkDepth(path)
+    img = torch.rand(1, 3, 64, 96)
+    big = F.interpolate(img, size=(128, 192), mode="nearest")
+    depth = src(big)
+    assert depth.shape == (1, 1, 128, 192)
+    with torch.no_grad():
+        expect = F.interpolate(ref.depth(F.interpolate(big, size=(64, 96), mode="bilinear", align_corners=False,
+                                                        antialias=True)),
+                               size=(128, 192), mode="bilinear", align_corners=False)
+    torch.testing.assert_close(depth, expect)
+
+
+def test_bad_out_dir_fails_first_naming_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """out_dir under a file fails at the start of run_inference (before the sequence and sources are built) with
+    an error naming out_dir; a missing nested out_dir is created."""
+    import dfvo.inference.pipeline as pipeline
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("the sequence must not be built before out_dir is checked")
+
+    monkeypatch.setattr(pipeline, "build_sequence", no_build)
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(NotADirectoryError, match=rf"out_dir={afile / 'out'}: .*{afile} is a file"):
+        pipeline.run_inference(OmegaConf.create({"out_dir": str(afile / "out")}))
+    with pytest.raises(NotADirectoryError, match=rf"out_dir={afile}: "):
+        pipeline.prepare_out_dir(afile)
+    with pytest.raises(ValueError, match="out_dir is not set"):
+        pipeline.prepare_out_dir(None)
+    assert pipeline.prepare_out_dir(tmp_path / "a" / "b").is_dir()
+
+
+def test_missing_flow_and_depth_checkpoints_reported_together(tmp_path: Path) -> None:
+    from dfvo.sources import check_sources
+
+    flow = OmegaConf.create({"source": "auto", "checkpoint": str(tmp_path / "flow.safetensors")})
+    depth = OmegaConf.create({"source": "auto", "checkpoint": str(tmp_path / "depth.safetensors")})
+    with pytest.raises(CheckpointError, match=r"(?s)flow and depth sources cannot be built:.*flow=auto: "
+                                              r".*flow\.safetensors.*depth=auto: .*depth\.safetensors"):
+        check_sources(flow, depth, world=None)
+    depth_net = OmegaConf.create({"source": "network", "checkpoint": str(tmp_path / "d.pt")})
+    with pytest.raises(CheckpointError, match=r"(?s)flow=auto: .*depth=network: depth network checkpoint .*d\.pt"):
+        check_sources(flow, depth_net, world=None)
+    oracle = OmegaConf.create({"source": "oracle"})
+    with pytest.raises(CheckpointError, match=r"(?s)flow=oracle: .*only data=synthetic.*depth=auto: .*depth\.saf"):
+        check_sources(oracle, depth, world=None)
+    world = SyntheticWorld(seed=0, num_frames=3, height=64, width=96)
+    assert check_sources(flow, depth, world) == {"flow": "oracle", "depth": "oracle"}
+
+
+def test_kitti_auto_sources_report_both_missing_checkpoints(kitti_odom_root: Path, tmp_path: Path) -> None:
+    proc = run_infer("data=kitti_odom", f"data.root={kitti_odom_root}", "seq=6", f"out_dir={tmp_path}",
+                     "progress=false", "flow=auto", "depth=auto", "flow.checkpoint=missing/flow.safetensors",
+                     "depth.checkpoint=missing/depth.safetensors", check=False)
+    assert proc.returncode != 0
+    assert "missing/flow.safetensors" in proc.stderr and "missing/depth.safetensors" in proc.stderr
+
+
+def test_aggregate_out_creates_missing_folders(tmp_path: Path) -> None:
+    sys.path.insert(0, str(REPO / "scripts"))
+    from aggregate_ablation import main
+
+    run = tmp_path / "runs" / "a"
+    run.mkdir(parents=True)
+    (run / "summary.json").write_text(json.dumps({"sequence": "09", "metrics": {"rpe_m": 0.1, "ate_m": 1.0},
+                                                  "choices": {"tracker": "hybrid"}}))
+    out = tmp_path / "missing" / "dir" / "table.md"
+    assert main([str(tmp_path / "runs"), "--out", str(out)]) == 0
+    assert "| tracker | 09 |" in out.read_text()
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(SystemExit) as exc:
+        main([str(tmp_path / "runs"), "--out", str(tmp_path / "afile" / "table.md")])
+    assert exc.value.code == 2
+
+
+@needs_stack
+@pytest.mark.skipif(not (REPO / "checkpoints" / "flow.safetensors").is_file(), reason="no shipped checkpoints")
+def test_default_run_uses_the_shipped_checkpoints(tmp_path: Path) -> None:
+    """``python infer.py`` on a fresh clone runs the shipped networks (at their trained input size) and writes
+    one pose per frame."""
+    run_infer(f"out_dir={tmp_path}", "data.num_frames=5", *SMALL)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["sources"]["flow"] == "network" and summary["sources"]["depth"] == "network"
+    assert summary["sources"]["flow_checkpoint"].endswith("checkpoints/flow.safetensors")
+    assert read_poses(tmp_path / "synthetic_drive_s0.txt").shape == (5, 4, 4)

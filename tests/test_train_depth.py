@@ -172,3 +172,88 @@ def test_registry_builds_flow_module(tmp_path: Path) -> None:
     module = build_module(cfg)
     assert type(module).__name__ == "FlowModule"
     assert model_identity(cfg).startswith("flow:") and model_identity(cfg) != model_identity(_cfg(tmp_path))
+
+
+def _logged_steps(run_dir: Path, tag: str = "train/loss") -> list[int]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    events = EventAccumulator(str(run_dir / "tb"))
+    events.Reload()
+    return [e.step for e in events.Scalars(tag)]
+
+
+@pytest.mark.parametrize("num_frames", [8, 6], ids=["stop-mid-epoch", "stop-at-epoch-end"])
+def test_resume_after_max_steps_is_exact(tmp_path: Path, num_frames: int) -> None:
+    """4 uninterrupted steps == 2 steps (``trainer.max_steps=2``) + resume from last.ckpt to 4 steps, with shuffling:
+    6 samples / batch 2 stops mid-epoch (the resumed run skips the batches already trained), 4 samples / batch 2
+    stops on an epoch's last batch (the next epoch keeps its order). Same weights and the same logged steps."""
+    common = ["model=depth_stereo", "data=synthetic", f"data.num_frames={num_frames}", "data.batch_size=2",
+              "data.width=64", "data.val_seeds=[]", "model.monitor=null", "model.lr_drop_fraction=2.0",
+              "model.log_images_every=0", "trainer.max_epochs=-1"]
+    full = run_training(_cfg(tmp_path, *common, "trainer.max_steps=4", "name=full"))
+    half = run_training(_cfg(tmp_path, *common, "trainer.max_steps=2", "name=half"))
+    assert half["global_step"] == 2
+    state = torch.load(half["last_ckpt"], map_location="cpu", weights_only=False)
+    assert state["loops"]["fit_loop"]["state_dict"]["combined_loader"][0]["batches"] == (2 if num_frames == 8 else 0)
+    resumed = run_training(_cfg(tmp_path, *common, "trainer.max_steps=4", "name=half",
+                                f"ckpt_path={half['last_ckpt']}"))
+    assert full["global_step"] == resumed["global_step"] == 4
+    a, b = _weights(full["last_ckpt"]), _weights(resumed["last_ckpt"])
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert _logged_steps(tmp_path / "full") == _logged_steps(tmp_path / "half") == [0, 1, 2, 3]
+
+
+def test_resumable_sampler_order_shards_and_skip() -> None:
+    from torch.utils.data import DistributedSampler
+
+    from dfvo.training.datamodule import ResumableSampler
+    data = list(range(7))
+    for world in (1, 2):
+        for rank in range(world):
+            ours = ResumableSampler(7, 2, seed=3, num_replicas=world, rank=rank, drop_last=world > 1)
+            ref = DistributedSampler(data, num_replicas=world, rank=rank, shuffle=True, seed=3, drop_last=world > 1)
+            for epoch in (0, 1, 5):
+                ours.set_epoch(epoch)
+                ref.set_epoch(epoch)
+                assert list(ours) == list(ref) and len(ours) == len(ref)
+    sampler = ResumableSampler(7, 2, seed=0, epoch_fn=lambda: 4, position_fn=lambda: (4, 2))
+    assert sampler.state_dict()["epoch"] == 4 and sampler.state_dict()["batches"] == 2
+    sampler.load_state_dict(sampler.state_dict())
+    assert list(sampler) == sampler.indices(4)[4:]  # the first 2 batches of epoch 4 skipped, once
+    assert list(sampler) == sampler.indices(4) and len(sampler) == 7
+    other = dict(sampler.state_dict(), batch_size=3)
+    sampler.load_state_dict(other)  # another batch size: the saved position means other samples
+    assert list(sampler) == sampler.indices(4)
+
+
+def test_unreadable_or_foreign_checkpoint_names_ckpt_path(tmp_path: Path) -> None:
+    """A junk / empty / non-Lightning file, and a Lightning checkpoint without the dfvo model identity, stop before
+    training with a ValueError naming ckpt_path and what was expected."""
+    from dfvo.training.runner import check_checkpoint
+    cfg = _cfg(tmp_path, "model=depth_stereo")
+    junk, empty, plain = tmp_path / "junk.ckpt", tmp_path / "empty.ckpt", tmp_path / "plain.pt"
+    junk.write_bytes(bytes(range(256)) * 4)
+    empty.write_bytes(b"")
+    torch.save({"weight": torch.zeros(2)}, plain)
+    for path in (junk, empty, plain):
+        with pytest.raises(ValueError, match=rf"ckpt_path={path}: .*Lightning checkpoint written by train.py"):
+            check_checkpoint(path, cfg)
+    with pytest.raises(FileNotFoundError, match="ckpt_path=.*nowhere.ckpt"):
+        check_checkpoint(tmp_path / "nowhere.ckpt", cfg)
+    old = tmp_path / "old.ckpt"
+    torch.save({"state_dict": {}, "global_step": 3}, old)  # written before the model identity existed
+    with pytest.raises(ValueError, match=r"has no dfvo model identity \(.*older version of dfvo or by another"):
+        check_checkpoint(old, cfg)
+    res = subprocess.run([sys.executable, "train.py", "model=depth_stereo", "data=synthetic", "trainer.max_steps=1",
+                          f"runs_dir={tmp_path}", "name=junk", f"ckpt_path={junk}", *TINY, *SYN], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode != 0 and f"ckpt_path={junk}: cannot be read as a checkpoint" in res.stderr
+    assert "UnpicklingError" in res.stderr
+
+
+def test_depth_module_names_a_checkpoint_without_model_type(tmp_path: Path) -> None:
+    from dfvo.training.depth_module import DepthPoseModule
+    module = DepthPoseModule(_cfg(tmp_path, "model=depth_mono"))
+    with pytest.raises(ValueError, match="has no dfvo model type .*older version of dfvo or by another program"):
+        module.on_load_checkpoint({"state_dict": {}, "hyper_parameters": {}})

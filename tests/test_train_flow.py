@@ -140,3 +140,33 @@ def test_train_py_flow_self_on_kitti_raw(tmp_path: Path, kitti_raw_root: Path) -
     _train(tmp_path, "model=flow_self", "data=kitti_raw", f"data.root={kitti_raw_root.parent}", "data.height=64",
            "data.width=192", "data.max_train_samples=4", "data.batch_size=2")
     assert (tmp_path / "flow_self_kitti_raw" / "checkpoints" / "last.ckpt").is_file()
+
+
+def test_unreadable_init_from_names_the_setting(tmp_path: Path) -> None:
+    """Junk, empty and non-state-dict files given as model.init_from raise a ValueError naming the setting, the path
+    and the expected formats (before any training)."""
+    junk, empty, junk_st, listing = (tmp_path / n for n in ("junk.ckpt", "empty.pt", "junk.safetensors", "list.pt"))
+    junk.write_bytes(bytes(range(256)) * 4)
+    empty.write_bytes(b"")
+    junk_st.write_bytes(b"\xff" * 64)
+    torch.save([1, 2, 3], listing)
+    for path in (junk, empty, junk_st, listing):
+        with pytest.raises(ValueError, match=rf"model.init_from={path}: .*Lightning .ckpt of a flow model"):
+            load_flow_weights(FlowNet("tiny"), path)
+        with pytest.raises(ValueError, match=rf"model.init_from={path}"):
+            FlowModule(_cfg("self", tmp_path, init_from=str(path)))
+    with pytest.raises(FileNotFoundError, match="model.init_from=.*missing.ckpt"):
+        load_flow_weights(FlowNet("tiny"), tmp_path / "missing.ckpt")
+
+
+@pytest.mark.parametrize("data", ["kitti_raw", "kitti_odom", "kitti_raw_synthetic"])
+def test_supervised_flow_on_data_without_true_flow_fails_at_setup(tmp_path: Path, data: str) -> None:
+    """model=flow_supervised with a dataset without true flow stops before training (no checkpoint, no step)."""
+    from hydra import compose, initialize_config_dir
+
+    from dfvo.training.runner import run_training
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides=["model=flow_supervised", f"data={data}", f"runs_dir={tmp_path}", "name=x"])
+    with pytest.raises(ValueError, match=rf"model=flow_supervised .*data={data}.*data=synthetic.*model=flow_self"):
+        run_training(cfg)
+    assert not (tmp_path / "x" / "checkpoints").exists()

@@ -11,6 +11,7 @@ Convention:
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from dataclasses import fields
@@ -23,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from dfvo.inference.frames import FrameSequence, build_sequence
 from dfvo.inference.outputs import FramesCsv, PoseWriter, fallback_summary, write_json
-from dfvo.sources import build_depth_source, build_flow_source
+from dfvo.sources import build_depth_source, build_flow_source, check_sources
 
 __all__ = ["run_inference", "tracker_config", "TRACKER_GROUPS"]
 
@@ -79,6 +80,31 @@ def _tensorboard(cfg: DictConfig, out: Path) -> Any:
     return SummaryWriter(str(out / "tensorboard"))
 
 
+def prepare_out_dir(out_dir: Any) -> Path:
+    """Create the output folder ``out_dir`` (parents included) and check that it is writable.
+
+    Raises:
+        ValueError: ``out_dir`` is not set.
+        OSError: the folder cannot be created or written (a path component is a file, no permission, ...); the
+            message names ``out_dir`` and the cause.
+    """
+    if out_dir is None or not str(out_dir).strip():
+        raise ValueError("out_dir is not set; pass out_dir=FOLDER (created if missing)")
+    out = Path(str(out_dir))
+    blocker = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise NotADirectoryError(f"out_dir={out}: cannot create the output folder, {blocker} is a file, not a "
+                                 "folder; pass out_dir= a folder path")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise type(err)(f"out_dir={out}: cannot create the output folder ({err.strerror or err}); pass out_dir= a "
+                        "writable folder path") from err
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise PermissionError(f"out_dir={out}: the output folder is not writable; pass out_dir= a writable folder")
+    return out
+
+
 def run_inference(cfg: DictConfig) -> dict[str, Any]:
     """Run DF-VO on one sequence and write its outputs (see :mod:`dfvo.inference.outputs`).
 
@@ -89,12 +115,14 @@ def run_inference(cfg: DictConfig) -> dict[str, Any]:
     Returns:
         Summary dict (also written to ``OUT/summary.json``): sequence, frames, fps, timing, fallback, metrics.
     """
+    out = prepare_out_dir(cfg.get("out_dir"))  # before the (slow) sources: a bad out_dir fails at once
     if cfg.get("num_threads"):
         torch.set_num_threads(int(cfg.num_threads))
     device = str(cfg.get("device", "cpu"))
     seq = build_sequence(cfg.data, cfg.get("seq"), cfg.img_res)
     if seq.length < 2:
         raise ValueError(f"sequence {seq.name} has {seq.length} frame(s); expected at least 2")
+    check_sources(cfg.flow, cfg.depth, seq.world)  # every missing checkpoint in one error, before loading any
     flow_src = build_flow_source(cfg.flow, seq.world, device)
     depth_src = build_depth_source(cfg.depth, seq.world, device)
     from dfvo.tracking import VisualOdometry
@@ -111,8 +139,6 @@ def run_inference(cfg: DictConfig) -> dict[str, Any]:
 
         ocfg = OnlineFlowConfig(**OmegaConf.to_container(cfg.get("online", {}) or {}, resolve=True))
         finetuner = OnlineFlowFinetuner(flow_src.model, ocfg)
-    out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     writer = _tensorboard(cfg, out)
     try:
         summary = _loop(cfg, seq, flow_src, depth_src, vo, finetuner, out, writer, device)
@@ -153,7 +179,7 @@ def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, depth_src: Any, vo
             t0 = time.perf_counter()
             if finetuner is not None and finetuner.active:
                 for k in range(len(idx)):
-                    finetuner.step(imgs[k:k + 1], imgs[k + 1:k + 2])
+                    finetuner.step(*flow_src.network_inputs(imgs[k:k + 1], imgs[k + 1:k + 2]))
                 timer.add("finetune", time.perf_counter() - t0)
                 t0 = time.perf_counter()
             flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)

@@ -21,8 +21,8 @@ from dfvo.sources.oracle import OracleDepth, OracleFlow
 
 log = logging.getLogger("dfvo.sources")
 
-__all__ = ["find_checkpoint", "resolve_source", "CheckpointError", "NetworkDepth", "NetworkFlow", "OracleDepth",
-           "OracleFlow", "build_flow_source", "build_depth_source", "load_weights"]
+__all__ = ["find_checkpoint", "resolve_source", "check_sources", "CheckpointError", "NetworkDepth", "NetworkFlow",
+           "OracleDepth", "OracleFlow", "build_flow_source", "build_depth_source", "load_weights"]
 
 
 def find_checkpoint(path: str | Path | None) -> Path:
@@ -54,23 +54,67 @@ def resolve_source(cfg: Any, world: Any, what: str) -> str:
                           f"{'FlowNet' if what == 'flow' else 'DepthNet'})")
 
 
+NETWORKS = {"flow": "FlowNet", "depth": "DepthNet"}
+ORACLES = {"flow": OracleFlow, "depth": OracleDepth}
+
+
+def check_sources(flow_cfg: Any, depth_cfg: Any, world: Any = None) -> dict[str, str]:
+    """Resolve the ``flow`` and ``depth`` sources together, before either is built, and report every problem at
+    once: an ``auto`` source without its checkpoint on data without ground truth, a ``network`` source whose
+    checkpoint file does not exist, an ``oracle`` source on data without ground truth.
+
+    Returns:
+        ``{"flow": kind, "depth": kind}`` with ``auto`` resolved (``"oracle"`` or ``"network"``).
+
+    Raises:
+        CheckpointError: when a checkpoint is missing, naming each problem (one line per source).
+        ValueError: when the only problems are oracle sources on data without ground truth.
+    """
+    kinds: dict[str, str] = {}
+    problems: list[str] = []
+    missing_checkpoint = False
+    for what, cfg in (("flow", flow_cfg), ("depth", depth_cfg)):
+        try:
+            kinds[what] = kind = resolve_source(cfg, world, what)
+            ckpt = cfg.get("checkpoint")
+            if kind == "network" and not (ckpt and find_checkpoint(ckpt).is_file()):
+                raise CheckpointError(f"{what}=network: {what} network checkpoint {ckpt} does not exist; set "
+                                      f"{what}.checkpoint=PATH (a trained {NETWORKS[what]})")
+            if kind == "oracle":
+                ORACLES[what](world)  # raises when the data has no ground truth
+        except CheckpointError as err:
+            problems.append(str(err))
+            missing_checkpoint = True
+        except ValueError as err:
+            problems.append(str(err))
+    if problems:
+        text = "\n  ".join(problems)
+        if len(problems) > 1:
+            text = "flow and depth sources cannot be built:\n  " + text
+        raise CheckpointError(text) if missing_checkpoint else ValueError(text)
+    return kinds
+
+
 def build_flow_source(cfg: Any, world: Any = None, device: str = "cpu") -> OracleFlow | NetworkFlow:
-    """Flow source from the ``flow`` config group (``source: oracle|network|auto``, ``checkpoint``, ``variant``)."""
+    """Flow source from the ``flow`` config group (``source: oracle|network|auto``, ``checkpoint``, ``variant``,
+    ``input_size``)."""
     kind = resolve_source(cfg, world, "flow")
     if kind == "oracle":
         return OracleFlow(world)
     if kind == "network":
-        return NetworkFlow(find_checkpoint(cfg.get("checkpoint")), cfg.get("variant"), device=device)
+        return NetworkFlow(find_checkpoint(cfg.get("checkpoint")), cfg.get("variant"), device=device,
+                           input_size=cfg.get("input_size"))
     raise ValueError(f"flow.source={kind!r}; expected 'oracle', 'network' or 'auto' (conf/flow/*.yaml)")
 
 
 def build_depth_source(cfg: Any, world: Any = None, device: str = "cpu") -> OracleDepth | NetworkDepth:
     """Depth source from the ``depth`` config group (``source: oracle|network|auto``, ``checkpoint``,
-    ``depth_scale``, depth range)."""
+    ``depth_scale``, depth range, ``input_size``)."""
     kind = resolve_source(cfg, world, "depth")
     if kind == "oracle":
         return OracleDepth(world)
     if kind == "network":
         return NetworkDepth(find_checkpoint(cfg.get("checkpoint")), cfg.get("depth_scale", 1.0),
-                            cfg.get("min_depth", 0.1), cfg.get("max_depth", 100.0), device=device)
+                            cfg.get("min_depth", 0.1), cfg.get("max_depth", 100.0), device=device,
+                            input_size=cfg.get("input_size"))
     raise ValueError(f"depth.source={kind!r}; expected 'oracle', 'network' or 'auto' (conf/depth/*.yaml)")

@@ -6,6 +6,12 @@ Accepted checkpoint files:
       checkpoint whose ``state_dict`` holds the network under a prefix (``net.``, ``flow_net.``, ``depth_net.``,
       ``depth.``, ``model.``); the prefix that matches the expected network is stripped.
 
+Network input size:
+    A network runs best at the resolution it was trained at (a correlation layer's search range is in pixels;
+    depth cues are learnt at one scale). ``input_size=(h, w)`` resizes the images to that size before the network
+    and resizes its output back (flow vectors scaled by the size ratios); ``None`` takes the checkpoint's
+    ``height``/``width`` metadata when it has them (the export script writes them), else the images' own size.
+
 Convention:
     Images (B,3,H,W) float in [0,1]; flow (B,2,H,W) in pixels of the input; depth (B,1,H,W) in metres after
     multiplying the network depth by ``depth_scale`` (5.4 for a monodepth2-style stereo model trained with a
@@ -15,6 +21,7 @@ Convention:
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +31,7 @@ from torch import nn
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
 
-__all__ = ["CheckpointError", "load_weights", "NetworkFlow", "NetworkDepth"]
+__all__ = ["CheckpointError", "load_weights", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
 
 VARIANTS = ("default", "small", "tiny")
 PREFIXES = ("", "net.", "flow_net.", "flow.", "depth_net.", "depth.", "model.")
@@ -103,6 +110,38 @@ def load_weights(model: nn.Module, path: str | Path, expected: str) -> dict[str,
     return meta
 
 
+def resolve_input_size(input_size: Any, meta: dict[str, str], what: str) -> tuple[int, int] | None:
+    """``(h, w)`` the network should see: ``input_size`` when given (a pair of positive ints), else the checkpoint
+    metadata's ``height``/``width``, else None (the images' own size)."""
+    if input_size is None:
+        if "height" in meta and "width" in meta:
+            return int(meta["height"]), int(meta["width"])
+        return None
+    try:
+        h, w = (int(v) for v in input_size)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{what}.input_size={input_size!r}; expected [height, width] or null") from err
+    if h < 32 or w < 32:
+        raise ValueError(f"{what}.input_size={input_size!r}; expected [height, width] of at least 32 pixels")
+    return h, w
+
+
+def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    if tuple(images.shape[-2:]) == size:
+        return images
+    return F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
+
+
+def _resize_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Flow (B,2,h,w) in pixels of its own size → (B,2,H,W) in pixels of ``size``."""
+    h, w = flow.shape[-2:]
+    if (h, w) == tuple(size):
+        return flow
+    out = F.interpolate(flow, size=size, mode="bilinear", align_corners=False)
+    scale = torch.tensor([size[1] / w, size[0] / h], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
+    return out * scale
+
+
 class NetworkFlow:
     """Forward and backward flow from a trained :class:`~dfvo.models.flow_net.FlowNet` (one batch of 2B pairs).
 
@@ -111,14 +150,16 @@ class NetworkFlow:
         variant: FlowNet variant; None: the checkpoint's ``variant`` metadata, else the first of
             :data:`VARIANTS` whose parameters match the checkpoint.
         device: torch device.
+        input_size: (h, w) the network runs at (see module docstring); None: checkpoint metadata or image size.
     """
 
     name = "network"
 
-    def __init__(self, checkpoint: str | Path, variant: str | None = None, device: str = "cpu") -> None:
+    def __init__(self, checkpoint: str | Path, variant: str | None = None, device: str = "cpu",
+                 input_size: Any = None) -> None:
         self.checkpoint = Path(checkpoint)
         meta = {}
-        if variant is None and self.checkpoint.is_file():
+        if self.checkpoint.is_file():
             _, meta = _read_state(self.checkpoint, "flow network")
         if variant is None and "variant" not in meta and self.checkpoint.is_file():
             variant = self._guess_variant(device)
@@ -126,6 +167,7 @@ class NetworkFlow:
         self.model = FlowNet(self.variant).to(device).eval()
         load_weights(self.model, self.checkpoint, f"flow network FlowNet({self.variant!r})")
         self.device = torch.device(device)
+        self.input_size = resolve_input_size(input_size, meta, "flow")
 
     def _guess_variant(self, device: str) -> str | None:
         """The first FlowNet variant whose parameters the checkpoint holds (None: none does; load_weights then
@@ -138,13 +180,18 @@ class NetworkFlow:
                 continue
         return None
 
+    def network_inputs(self, *images: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The images (B,3,H,W) as the network sees them: on its device, resized to its input size."""
+        return tuple(_resize(im.to(self.device), self.input_size or tuple(im.shape[-2:])) for im in images)
+
     def __call__(self, images_prev: torch.Tensor, images_cur: torch.Tensor,
                  indices: list[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(flow_fwd, flow_bwd)`` (B,2,H,W) for images (B,3,H,W) prev and cur (``indices`` unused)."""
         KORNIA_CHECK_SHAPE(images_prev, ["B", "3", "H", "W"])
+        size = tuple(images_prev.shape[-2:])
         with torch.no_grad():
-            fwd, bwd = self.model.forward_backward(images_prev.to(self.device), images_cur.to(self.device))
-        return fwd, bwd
+            fwd, bwd = self.model.forward_backward(*self.network_inputs(images_prev, images_cur))
+            return _resize_flow(fwd, size), _resize_flow(bwd, size)
 
 
 class NetworkDepth:
@@ -155,29 +202,32 @@ class NetworkDepth:
         depth_scale: factor from the network's depth to metres (see module docstring).
         min_depth, max_depth: the network's depth range (as trained).
         device: torch device.
+        input_size: (h, w) the network runs at (see module docstring); None: checkpoint metadata or image size
+            rounded to multiples of 32.
     """
 
     name = "network"
 
     def __init__(self, checkpoint: str | Path, depth_scale: float = 1.0, min_depth: float = 0.1,
-                 max_depth: float = 100.0, device: str = "cpu") -> None:
+                 max_depth: float = 100.0, device: str = "cpu", input_size: Any = None) -> None:
         if depth_scale <= 0:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)
         self.model = DepthNet(min_depth, max_depth).to(device).eval()
-        load_weights(self.model, self.checkpoint, "depth network DepthNet")
+        meta = load_weights(self.model, self.checkpoint, "depth network DepthNet")
         self.depth_scale = float(depth_scale)
         self.device = torch.device(device)
+        self.input_size = resolve_input_size(input_size, meta, "depth")
 
     def __call__(self, images: torch.Tensor, indices: list[int] | None = None) -> torch.Tensor:
-        """Depth (B,1,H,W) in metres of images (B,3,H,W); inputs are resized to multiples of 32 and back."""
+        """Depth (B,1,H,W) in metres of images (B,3,H,W), computed at the network's input size (multiples of 32)
+        and resized back."""
         KORNIA_CHECK_SHAPE(images, ["B", "3", "H", "W"])
         h, w = images.shape[-2:]
-        hp, wp = max(64, round(h / 32) * 32), max(64, round(w / 32) * 32)
-        x = images.to(self.device)
-        if (hp, wp) != (h, w):
-            x = F.interpolate(x, size=(hp, wp), mode="bilinear", align_corners=False)
-        depth = self.model.depth(x)
-        if (hp, wp) != (h, w):
-            depth = F.interpolate(depth, size=(h, w), mode="bilinear", align_corners=False)
-        return depth * self.depth_scale
+        nh, nw = self.input_size or (h, w)
+        hp, wp = max(64, round(nh / 32) * 32), max(64, round(nw / 32) * 32)
+        with torch.no_grad():
+            depth = self.model.depth(_resize(images.to(self.device), (hp, wp)))
+            if (hp, wp) != (h, w):
+                depth = F.interpolate(depth, size=(h, w), mode="bilinear", align_corners=False)
+            return depth * self.depth_scale

@@ -80,6 +80,10 @@ class DepthPoseModule(L.LightningModule):
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         found = checkpoint.get(MODEL_TYPE_KEY, checkpoint.get("hyper_parameters", {}).get(MODEL_TYPE_KEY))
+        if found is None:
+            raise ValueError(f"the checkpoint has no dfvo model type ({MODEL_TYPE_KEY!r}): it was written by an older "
+                             f"version of dfvo or by another program; train {self.model_type!r} without it, or use "
+                             "a checkpoint written by train.py")
         if found != self.model_type:
             raise ValueError(f"checkpoint holds model type {found!r}, but this run trains {self.model_type!r} "
                              "(pick the matching model= or another ckpt_path)")

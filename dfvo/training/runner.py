@@ -3,8 +3,10 @@
 Registry: ``"depth" -> dfvo.training.depth_module.DepthPoseModule``, ``"flow" -> dfvo.training.flow_module.FlowModule``
 (imported lazily; each built as ``Module(cfg)``). Outputs go to ``runs/<name>/``: ``checkpoints/last.ckpt`` and
 ``best-*.ckpt`` (monitored metric from ``cfg.model.monitor``), TensorBoard logs under ``runs/<name>/tb``.
-``ckpt_path=...`` resumes exactly (weights, optimiser, scheduler, step, sampler epoch). Checkpoints record the
-task and model name; resuming from a checkpoint of another model type stops with an error before training.
+``ckpt_path=...`` resumes exactly (weights, optimiser, scheduler, step, data position: the stateful train loader of
+:mod:`dfvo.training.datamodule` skips the batches of the epoch already trained, also from a checkpoint written
+mid-epoch, e.g. by a run stopped by ``trainer.max_steps``). Checkpoints record the task and model name; resuming
+from a checkpoint of another model type stops with an error before training.
 """
 
 from __future__ import annotations
@@ -76,13 +78,69 @@ class ModelIdentity(Callback):
         checkpoint[CKPT_KEY] = self.identity
 
 
-def check_checkpoint(path: str | Path, cfg: DictConfig) -> None:
-    """Raise ``ValueError`` if the checkpoint at ``path`` was written for another model type than ``cfg.model``."""
+CKPT_EXPECTED = "a Lightning checkpoint written by train.py (runs/<name>/checkpoints/last.ckpt or best-*.ckpt)"
+
+
+def load_run_checkpoint(path: str | Path, setting: str = "ckpt_path") -> dict[str, Any]:
+    """Read the Lightning checkpoint at ``path``; any failure raises an error naming ``setting=path``.
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file.
+        ValueError: the file cannot be read as a checkpoint (junk, truncated, another format) or is not a
+            Lightning checkpoint (no ``state_dict``).
+    """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path={path}: no such checkpoint file")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise FileNotFoundError(f"{setting}={path}: no such checkpoint file (expected {CKPT_EXPECTED})")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # UnpicklingError, EOFError, RuntimeError (bad zip), ...: all mean "not a checkpoint"
+        raise ValueError(f"{setting}={path}: cannot be read as a checkpoint ({type(err).__name__}: {err}); "
+                         f"expected {CKPT_EXPECTED}") from err
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        found = f"a dict with keys {sorted(map(str, ckpt))[:6]}" if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise ValueError(f"{setting}={path}: holds {found}, not a Lightning checkpoint (no 'state_dict'); "
+                         f"expected {CKPT_EXPECTED}")
+    return ckpt
+
+
+class LoggedStepAfterResume(Callback):
+    """Make a resumed run log its first (and so every later) point at ``global_step``, as an uninterrupted run.
+
+    Lightning 2.6 restores its logging step (``fit_loop.epoch_loop._batches_that_stepped``) one too high when the
+    checkpoint was written at the end of an epoch (for example when ``trainer.max_steps`` stopped the run on an
+    epoch's last batch), so every point of the resumed run is logged one step late. Without gradient accumulation,
+    and with one optimiser step per batch, the logging step of a batch is its ``global_step``; at the first batch
+    after a resume this callback sets it back when the two differ.
+    """
+
+    def __init__(self) -> None:
+        self._resumed = False
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._resumed = trainer.ckpt_path is not None
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
+                             batch_idx: int) -> None:
+        if not self._resumed:
+            return
+        self._resumed = False
+        epoch_loop = trainer.fit_loop.epoch_loop
+        if (pl_module.automatic_optimization and trainer.accumulate_grad_batches == 1
+                and getattr(epoch_loop, "_batches_that_stepped", None) not in (None, trainer.global_step)):
+            epoch_loop._batches_that_stepped = trainer.global_step
+
+
+def check_checkpoint(path: str | Path, cfg: DictConfig) -> None:
+    """Raise ``ValueError`` if the checkpoint at ``path`` cannot be read, has no dfvo model identity, or was
+    written for another model type than ``cfg.model`` (``FileNotFoundError`` if it does not exist)."""
+    ckpt = load_run_checkpoint(path, "ckpt_path")
     found, expected = ckpt.get(CKPT_KEY), model_identity(cfg)
+    if found is None:
+        raise ValueError(f"ckpt_path={path}: the checkpoint has no dfvo model identity ({CKPT_KEY!r}): it was "
+                         f"written by an older version of dfvo or by another program, so it cannot be resumed as a "
+                         f"{expected!r} run. Start without ckpt_path (for a flow model, model.init_from={path} "
+                         f"starts from its weights), or resume from {CKPT_EXPECTED}")
     if found != expected:
         raise ValueError(f"ckpt_path={path} holds a {found!r} model, but this run is {expected!r}; pass the "
                          "matching model= (or start without ckpt_path)")
@@ -97,7 +155,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
     callbacks: list[Callback] = [
         ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
                         enable_version_counter=False),
-        NaNGuard(), ModelIdentity(model_identity(cfg)),
+        NaNGuard(), ModelIdentity(model_identity(cfg)), LoggedStepAfterResume(),
     ]
     if monitor:
         callbacks.append(ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best-{epoch}-{step}",
@@ -121,6 +179,8 @@ def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
         gradient_clip_val=_get(t, "gradient_clip_val", None),
         enable_progress_bar=bool(_get(t, "enable_progress_bar", True)),
         default_root_dir=str(run_dir), callbacks=callbacks, logger=logger,
+        # the datamodule shards with its own resumable sampler; Lightning must not wrap it in a DistributedSampler
+        use_distributed_sampler=False,
     )
     return L.Trainer(**kwargs)
 
@@ -141,8 +201,8 @@ def run_training(cfg: DictConfig) -> dict[str, Any]:
     ckpt_path = _get(cfg, "ckpt_path", None)
     if ckpt_path:
         check_checkpoint(ckpt_path, cfg)
+    datamodule = DFVODataModule(cfg)  # checks the data fits the model (e.g. supervised flow needs true flow)
     module = build_module(cfg)
-    datamodule = DFVODataModule(cfg)
     trainer = build_trainer(cfg, run_dir)
     if trainer.is_global_zero:
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
