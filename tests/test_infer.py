@@ -80,7 +80,8 @@ def relative_errors(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.nd
 @needs_stack
 def test_oracle_synthetic_reproduces_true_poses_and_writes_outputs(tmp_path: Path) -> None:
     n = 8
-    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "tensorboard.enabled=true", "tensorboard.every=3", *SMALL, *ORACLE)
+    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "tensorboard.enabled=true", "tensorboard.every=3",
+              *SMALL, *ORACLE)
     gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()
     pred = read_poses(tmp_path / "synthetic_drive_s0.txt")
     assert pred.shape == (n, 4, 4)
@@ -257,8 +258,8 @@ def test_kitti_odom_command_reads_sequence_and_refuses_oracle(kitti_odom_root: P
 @needs_stack
 def test_tiny_multirun_and_ablation_table(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
-    run_infer("-m", "correspondence=local_best_k,best_n", "data.num_frames=4", f"hydra.sweep.dir={sweep}", *SMALL, *ORACLE,
-              timeout=180)
+    run_infer("-m", "correspondence=local_best_k,best_n", "data.num_frames=4", f"hydra.sweep.dir={sweep}", *SMALL,
+              *ORACLE, timeout=180)
     summaries = sorted(sweep.rglob("summary.json"))
     assert len(summaries) == 2
     assert all(len(read_poses(p.parent / "synthetic_drive_s0.txt")) == 4 for p in summaries)
