@@ -102,8 +102,8 @@ def test_nan_loss_stops_with_message(tmp_path: Path, monkeypatch: pytest.MonkeyP
     from dfvo.training.depth_module import DepthPoseModule
     original = DepthPoseModule._losses
 
-    def nan_losses(self, batch):
-        loss, terms, vis = original(self, batch)
+    def nan_losses(self, batch, net_inputs=None):
+        loss, terms, vis = original(self, batch, net_inputs)
         return loss * float("nan"), terms, vis
 
     monkeypatch.setattr(DepthPoseModule, "_losses", nan_losses)
@@ -257,3 +257,28 @@ def test_depth_module_names_a_checkpoint_without_model_type(tmp_path: Path) -> N
     module = DepthPoseModule(_cfg(tmp_path, "model=depth_mono"))
     with pytest.raises(ValueError, match="has no dfvo model type .*older version of dfvo or by another program"):
         module.on_load_checkpoint({"state_dict": {}, "hyper_parameters": {}})
+
+
+def test_init_from_loads_depth_weights_and_names_a_wrong_file(tmp_path: Path) -> None:
+    """``model.init_from`` starts training from a DepthNet state dict (the shipped safetensors format); a file that
+    holds another network is refused with the setting's name."""
+    from safetensors.torch import save_file
+
+    from dfvo.models.depth_net import DepthNet
+    from dfvo.models.flow_net import FlowNet
+    from dfvo.sources.networks import CheckpointError
+    from dfvo.training.depth_module import DepthPoseModule
+
+    torch.manual_seed(1)
+    source = DepthNet()
+    path = tmp_path / "depth.safetensors"
+    half = {k: (v.half() if v.is_floating_point() else v).contiguous() for k, v in source.state_dict().items()}
+    save_file(half, str(path))
+    module = DepthPoseModule(_cfg(tmp_path, "model=depth_stereo", f"model.init_from={path}"))
+    loaded = module.depth_net.state_dict()
+    for k, v in half.items():
+        torch.testing.assert_close(loaded[k], v.to(loaded[k].dtype))
+    flow = tmp_path / "flow.safetensors"
+    save_file({k: v.contiguous() for k, v in FlowNet("tiny").state_dict().items()}, str(flow))
+    with pytest.raises(CheckpointError, match="model.init_from=.*flow.safetensors"):
+        DepthPoseModule(_cfg(tmp_path, "model=depth_stereo", f"model.init_from={flow}"))

@@ -20,7 +20,7 @@ import numpy as np
 __all__ = ["PoseWriter", "FramesCsv", "CSV_FIELDS", "write_json", "fallback_summary"]
 
 CSV_FIELDS = ["frame", "tracker", "num_correspondences", "num_inliers", "gric_e", "gric_h", "scale",
-              "fallback_reason", "constant_motion", "pnp_failed", "t_flow", "t_depth", "t_tracker"]
+              "fallback_reason", "constant_motion", "pnp_failed", "t_flow", "t_refine", "t_depth", "t_tracker"]
 
 
 def pose_line(T: np.ndarray) -> str:

@@ -1,10 +1,12 @@
 """The inference loop: frames → flow and depth sources → :class:`dfvo.tracking.VisualOdometry` → files.
 
 Convention:
-    Flow and depth are computed for ``batch_size`` consecutive frame pairs at once (one network batch), and the
-    tracker takes the same pairs as one batch (``VisualOdometry.run``: selection and E-RANSAC batched, the rest in
-    order). Frame 0's pose is the identity; frame k's pose ``T_w_k`` is
-    written to ``OUT/SEQ.txt`` (KITTI format) as soon as it is known, with its row of ``frames.csv``.
+    Network flow is refined photometrically (``flow.refine``, :mod:`dfvo.matching.flow_refinement`) before the
+    forward-backward test; the oracle's true flow is used as it is. Flow and depth are computed for ``batch_size``
+    consecutive frame pairs at once (one network batch), and the tracker takes the same pairs as one batch
+    (``VisualOdometry.run``: selection and E-RANSAC batched, the rest in order). Frame 0's pose is the identity;
+    frame k's pose ``T_w_k`` is written to ``OUT/SEQ.txt`` (KITTI format) as soon as it is known, with its row of
+    ``frames.csv``.
     Depth given to the tracker is the depth of the earlier frame of each pair, in metres.
 """
 
@@ -14,7 +16,7 @@ import logging
 import os
 import sys
 import time
-from dataclasses import fields
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -24,9 +26,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from dfvo.inference.frames import FrameSequence, build_sequence
 from dfvo.inference.outputs import FramesCsv, PoseWriter, fallback_summary, write_json
+from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward
 from dfvo.sources import build_depth_source, build_flow_source, check_sources
 
-__all__ = ["run_inference", "tracker_config", "TRACKER_GROUPS"]
+__all__ = ["run_inference", "tracker_config", "flow_refinement_config", "TRACKER_GROUPS"]
 
 log = logging.getLogger("dfvo.infer")
 
@@ -124,13 +127,15 @@ def run_inference(cfg: DictConfig) -> dict[str, Any]:
         raise ValueError(f"sequence {seq.name} has {seq.length} frame(s); expected at least 2")
     check_sources(cfg.flow, cfg.depth, seq.world)  # every missing checkpoint in one error, before loading any
     flow_src = build_flow_source(cfg.flow, seq.world, device)
+    refine = flow_refinement_config(cfg.flow) if flow_src.name == "network" else None
     depth_src = build_depth_source(cfg.depth, seq.world, device)
     from dfvo.tracking import VisualOdometry
 
     vo = VisualOdometry(tracker_config(cfg))
     sources = {"flow": flow_src.name, "depth": depth_src.name,
                "flow_checkpoint": str(getattr(flow_src, "checkpoint", "")) or None,
-               "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None}
+               "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None,
+               "flow_refinement": asdict(refine) if refine is not None else None}
     finetuner = None
     if cfg.get("online_finetune", False):
         if not hasattr(flow_src, "model"):
@@ -141,7 +146,7 @@ def run_inference(cfg: DictConfig) -> dict[str, Any]:
         finetuner = OnlineFlowFinetuner(flow_src.model, ocfg)
     writer = _tensorboard(cfg, out)
     try:
-        summary = _loop(cfg, seq, flow_src, depth_src, vo, finetuner, out, writer, device)
+        summary = _loop(cfg, seq, flow_src, refine, depth_src, vo, finetuner, out, writer, device)
     finally:
         if writer is not None:
             writer.close()
@@ -151,8 +156,22 @@ def run_inference(cfg: DictConfig) -> dict[str, Any]:
     return summary
 
 
-def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, depth_src: Any, vo: Any, finetuner: Any, out: Path,
-          writer: Any, device: str) -> dict[str, Any]:
+def flow_refinement_config(flow_cfg: Any) -> FlowRefinementConfig | None:
+    """``flow.refine`` as a :class:`FlowRefinementConfig`; None when absent or ``iterations`` is 0."""
+    values = flow_cfg.get("refine") if flow_cfg is not None else None
+    if not values:
+        return None
+    values = OmegaConf.to_container(values, resolve=True)
+    valid = {f.name for f in fields(FlowRefinementConfig)}
+    unknown = sorted(set(values) - valid)
+    if unknown:
+        raise ValueError(f"flow.refine: unknown setting(s) {unknown}; expected {sorted(valid)}")
+    refine = FlowRefinementConfig(**values)
+    return refine if refine.iterations > 0 else None
+
+
+def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, refine: FlowRefinementConfig | None, depth_src: Any,
+          vo: Any, finetuner: Any, out: Path, writer: Any, device: str) -> dict[str, Any]:
     from tqdm import tqdm
 
     poses = PoseWriter(out / f"{seq.name}.txt")
@@ -184,6 +203,12 @@ def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, depth_src: Any, vo
                 t0 = time.perf_counter()
             flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)
             t_flow = time.perf_counter() - t0
+            t_refine = 0.0
+            if refine is not None:
+                t0 = time.perf_counter()
+                flow_fwd, flow_bwd = refine_forward_backward(imgs[:-1], imgs[1:], flow_fwd, flow_bwd, refine)
+                t_refine = time.perf_counter() - t0
+                timer.add("refine", t_refine)
             t0 = time.perf_counter()
             depth = depth_src(imgs[:-1], idx)
             t_depth = time.perf_counter() - t0
@@ -202,7 +227,8 @@ def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, depth_src: Any, vo
                 poses.write(T_w)
                 traj.append(T_w.copy())
                 row = _diag_row(i + 1, diag)
-                row.update(t_flow=t_flow / len(idx), t_depth=t_depth / len(idx), t_tracker=t_track)
+                row.update(t_flow=t_flow / len(idx), t_refine=t_refine / len(idx), t_depth=t_depth / len(idx),
+                           t_tracker=t_track)
                 table.write(row)
                 rows.append(row)
                 if writer is not None and (i % int(cfg.tensorboard.get("every", 10)) == 0):

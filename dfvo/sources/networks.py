@@ -34,7 +34,7 @@ from dfvo.models.flow_net import FlowNet
 __all__ = ["CheckpointError", "load_weights", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
 
 VARIANTS = ("default", "small", "tiny")
-PREFIXES = ("", "net.", "flow_net.", "flow.", "depth_net.", "depth.", "model.")
+PREFIXES = ("", "net.", "flow_net.", "flow.", "depth_net.", "depth.", "pose_net.", "model.")
 
 
 class CheckpointError(ValueError):

@@ -8,6 +8,11 @@ Config (``cfg.model``, see ``conf/model/depth_*.yaml``):
     lr (1e-4), lr_drop_fraction (0.75: lr x0.1 for the last quarter of the steps);
     log_images_every (steps); monitor (metric of the "best" checkpoint). Validation logs the Eigen metrics
     raw (``val/abs_rel``, ..., metric depth) and median-scaled (``val/abs_rel_med``, ..., monocular models).
+    augment (:class:`dfvo.training.augment.DepthAugmentConfig` fields, null or ``{flip_prob: 0, jitter_prob: 0}``:
+    none): flips and colour jitter drawn from a generator seeded by (``data.seed``, global step), so resuming is
+    exact. init_from: start from the weights of a checkpoint (``.safetensors``/``.pt`` DepthNet state dict, or a
+    depth ``.ckpt``; its pose network too when it holds one) instead of random weights (not a resume: step 0,
+    fresh optimiser).
 
 Loss (per scale s = 0..3, averaged over scales): every scale's disparity is upsampled to the input
 resolution (monodepth2), each source view (prev, next, stereo partner) is warped into the target, the
@@ -32,6 +37,7 @@ from dfvo.losses.reprojection import reproject
 from dfvo.losses.smoothness import edge_aware_smoothness
 from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth
 from dfvo.models.pose_net import PoseNet
+from dfvo.training.augment import DepthAugmentConfig, augment_depth_batch
 
 MODEL_TYPE_KEY = "dfvo_model_type"
 
@@ -72,7 +78,30 @@ class DepthPoseModule(L.LightningModule):
         init_depth = _get(m, "init_depth", None)
         self.depth_net = DepthNet(self.min_depth, self.max_depth, None if init_depth is None else float(init_depth))
         self.pose_net = PoseNet() if self.temporal else None
+        augment = _get(m, "augment", None)
+        self.augment = DepthAugmentConfig(**OmegaConf.to_container(augment, resolve=True)) if augment else None
+        self.augment_seed = int(_get(cfg, "data.seed", 0))
+        init_from = _get(m, "init_from", None)
+        if init_from:
+            self._init_weights_from(str(init_from))
         self.save_hyperparameters({"cfg": OmegaConf.to_container(cfg, resolve=True), MODEL_TYPE_KEY: self.model_type})
+
+    def _init_weights_from(self, path: str) -> None:
+        """Load DepthNet (required) and PoseNet (when the file holds it) weights from ``path``."""
+        import logging
+
+        from dfvo.sources.networks import CheckpointError, load_weights
+
+        try:
+            load_weights(self.depth_net, path, "depth network DepthNet")
+        except CheckpointError as err:
+            raise CheckpointError(f"model.init_from={path}: {err}") from err
+        if self.pose_net is not None:
+            try:
+                load_weights(self.pose_net, path, "pose network PoseNet")
+            except CheckpointError:
+                logging.getLogger("dfvo.training").info("model.init_from=%s holds no PoseNet: the pose network "
+                                                        "starts from random weights", path)
 
     # ---------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -93,35 +122,43 @@ class DepthPoseModule(L.LightningModule):
         """Depth (B,1,H,W) of ``image`` (B,3,H,W) at full resolution."""
         return disp_to_depth(self.depth_net(image)[0], self.min_depth, self.max_depth)
 
-    def _sources(self, batch: dict[str, torch.Tensor]) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
-        """(name, source image, T_source_target) for every source view."""
+    def _sources(self, batch: dict[str, torch.Tensor], net_inputs: dict[str, torch.Tensor] | None = None
+                 ) -> list[tuple[str, torch.Tensor, torch.Tensor]]:
+        """(name, source image, T_source_target) for every source view; the pose network sees ``net_inputs``
+        (jittered images) when given, the warps use the batch's images."""
         def need(key: str, why: str) -> torch.Tensor:
             if key not in batch:
                 raise KeyError(f"DepthPoseModule ({self.model_type}): batch lacks {key!r} needed for {why}; "
                                f"got keys {sorted(batch)} (check data= and model.stereo/temporal)")
             return batch[key]
         image = need("image", "the target view")
+        net = net_inputs or {}
         out = []
         if self.temporal:
             prev, nxt = need("image_prev", "temporal views"), need("image_next", "temporal views")
+            n_prev, n_img, n_next = net.get("image_prev", prev), net.get("image", image), net.get("image_next", nxt)
             # the pose net sees frames in temporal order: PoseNet(a, b) = T_b_a
-            T_cur_prev = self.pose_net(prev, image)
+            T_cur_prev = self.pose_net(n_prev, n_img)
             out.append(("prev", prev, torch.linalg.inv(T_cur_prev)))
-            out.append(("next", nxt, self.pose_net(image, nxt)))
+            out.append(("next", nxt, self.pose_net(n_img, n_next)))
         if self.stereo:
             out.append(("stereo", need("image_right", "stereo"), need("T_right_left", "stereo").float()))
         return out
 
-    def _losses(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict]:
+    def _losses(self, batch: dict[str, torch.Tensor], net_inputs: dict[str, torch.Tensor] | None = None
+                ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict]:
         image, K = batch["image"], batch["K"].float()
         B, _, H, W = image.shape
-        sources = self._sources(batch)
+        net = net_inputs or {}
+        sources = self._sources(batch, net)
         temporal = [s for s in sources if s[0] != "stereo"]
         if self.w_consistency > 0:
-            disps_all = self.depth_net(torch.cat([image] + [s[1] for s in temporal], 0))
+            keys = {"prev": "image_prev", "next": "image_next"}
+            views = [net.get("image", image)] + [net.get(keys[s[0]], s[1]) for s in temporal]
+            disps_all = self.depth_net(torch.cat(views, 0))
             disps = {s: d[:B] for s, d in disps_all.items()}
         else:
-            disps = self.depth_net(image)
+            disps = self.depth_net(net.get("image", image))
         identity = []
         if self.automask:
             identity = [ssim_l1_error(image, src, self.alpha) + 1e-5 for _, src, _ in sources]
@@ -163,7 +200,11 @@ class DepthPoseModule(L.LightningModule):
 
     # ---------------------------------------------------------------- steps
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
-        loss, terms, vis = self._losses(batch)
+        net_inputs = None
+        if self.augment is not None:
+            g = torch.Generator().manual_seed(self.augment_seed * 1_000_003 + int(self.global_step))
+            batch, net_inputs = augment_depth_batch(batch, self.augment, g)
+        loss, terms, vis = self._losses(batch, net_inputs)
         bs = batch["image"].shape[0]
         self.log("train/loss", loss.detach(), prog_bar=True, batch_size=bs)
         for name, value in terms.items():

@@ -1,0 +1,146 @@
+"""Training-time augmentation of depth/pose batches (monodepth2's recipe): horizontal flips and colour jitter.
+
+Convention:
+    A batch holds ``image`` (B,3,H,W) and, as the task needs, ``image_prev``, ``image_next``, ``image_right``
+    (B,3,H,W) in [0,1], ``K`` (B,3,3) in pixels of the batch's resolution and ``T_right_left`` (B,4,4) with
+    translation ``(-b, 0, 0)``. Pixel centres are at integer coordinates (:mod:`dfvo.geometry.camera`).
+
+    - **Flip** (geometry, changes what the losses see): every image of a sample is mirrored left-right, so
+      ``u -> W-1-u`` and ``cx -> W-1-cx``. Mirroring the world about the camera's x = 0 plane puts the right
+      camera at ``-b``: ``T_right_left``'s x translation changes sign (no left/right swap is needed, so the
+      temporal neighbours stay the left camera's). The pose network is trained on the mirrored pairs as they are.
+    - **Colour jitter** (appearance, the network inputs only): brightness and contrast factors in
+      ``[1-a, 1+a]``, saturation in ``[1-a, 1+a]``, hue shift in ``[-h, h]`` turns, the same for every image
+      of a sample so the frames stay photometrically consistent; with ``gray_prob`` a sample's inputs become
+      greyscale (KITTI odometry's cameras 0/1 are greyscale). The photometric losses compare the un-jittered
+      images, as monodepth2 does.
+
+Random draws come from a ``torch.Generator`` the caller seeds (the depth module seeds it with the data seed and
+the global step), so a resumed run draws the same augmentations as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
+from kornia.enhance import adjust_hue, adjust_saturation
+
+__all__ = ["DepthAugmentConfig", "IMAGE_KEYS", "flip_batch", "jitter_images", "augment_depth_batch"]
+
+IMAGE_KEYS = ("image", "image_prev", "image_next", "image_right")
+LUMA = (0.299, 0.587, 0.114)
+
+
+@dataclass
+class DepthAugmentConfig:
+    """Augmentation settings (``model.augment`` in ``conf/model/depth_*.yaml``; monodepth2's values).
+
+    Attributes:
+        flip_prob: probability of mirroring a sample.
+        jitter_prob: probability of colour-jittering a sample's network inputs.
+        brightness, contrast, saturation: factors are drawn uniformly from ``[1-a, 1+a]``.
+        hue: hue shift drawn uniformly from ``[-hue, hue]`` in turns (0.1 = 36 degrees).
+        gray_prob: probability of greyscale network inputs.
+    """
+
+    flip_prob: float = 0.5
+    jitter_prob: float = 0.5
+    brightness: float = 0.2
+    contrast: float = 0.2
+    saturation: float = 0.2
+    hue: float = 0.1
+    gray_prob: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("flip_prob", "jitter_prob", "gray_prob"):
+            value = float(getattr(self, name))
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"model.augment.{name}={value}; expected a probability in [0, 1]")
+        for name in ("brightness", "contrast", "saturation"):
+            value = float(getattr(self, name))
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"model.augment.{name}={value}; expected a factor range in [0, 1)")
+        if not 0.0 <= float(self.hue) <= 0.5:
+            raise ValueError(f"model.augment.hue={self.hue}; expected a hue range in [0, 0.5] turns")
+
+
+def flip_batch(batch: dict[str, torch.Tensor], flip: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Mirror the samples where ``flip`` (B,) is True: images, ``K`` and ``T_right_left`` (see module docstring).
+
+    Returns a new dict; keys other than images, ``K`` and ``T_right_left`` are passed through unchanged (a
+    ``depth`` map, if present, is mirrored too).
+    """
+    image = batch["image"]
+    KORNIA_CHECK_SHAPE(image, ["B", "3", "H", "W"])
+    KORNIA_CHECK(flip.shape == (image.shape[0],), f"flip_batch: flip must be (B,)=({image.shape[0]},), "
+                                                  f"got {tuple(flip.shape)}")
+    if not bool(flip.any()):
+        return dict(batch)
+    W = image.shape[-1]
+    out = dict(batch)
+    f = flip.to(image.device)
+    for key in (*IMAGE_KEYS, "depth"):
+        if key in batch:
+            x = batch[key]
+            out[key] = torch.where(f.view(-1, 1, 1, 1), x.flip(-1), x)
+    if "K" in batch:
+        K = batch["K"].clone()
+        K[:, 0, 2] = torch.where(f, (W - 1) - K[:, 0, 2], K[:, 0, 2])
+        out["K"] = K
+    if "T_right_left" in batch:
+        T = batch["T_right_left"].clone()
+        T[:, 0, 3] = torch.where(f, -T[:, 0, 3], T[:, 0, 3])
+        out["T_right_left"] = T
+    return out
+
+
+def _uniform(n: int, half_width: float, generator: torch.Generator, centre: float = 0.0) -> torch.Tensor:
+    return centre + (2.0 * torch.rand(n, generator=generator, dtype=torch.float64) - 1.0) * half_width
+
+
+def jitter_images(images: dict[str, torch.Tensor], cfg: DepthAugmentConfig,
+                  generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """Colour-jittered copies of ``images`` (each (B,3,H,W) in [0,1]); one draw per sample, shared by its images.
+
+    Order: brightness, contrast (about the image's mean grey), saturation, hue, then greyscale; values are
+    clamped to [0,1].
+    """
+    first = next(iter(images.values()))
+    B = first.shape[0]
+    dev, dt = first.device, first.dtype
+    jit = torch.rand(B, generator=generator, dtype=torch.float64) < cfg.jitter_prob
+    bright = torch.where(jit, _uniform(B, cfg.brightness, generator, 1.0), 1.0)
+    contrast = torch.where(jit, _uniform(B, cfg.contrast, generator, 1.0), 1.0)
+    sat = torch.where(jit, _uniform(B, cfg.saturation, generator, 1.0), 1.0)
+    hue = torch.where(jit, _uniform(B, cfg.hue, generator), 0.0) * (2.0 * math.pi)  # turns -> radians
+    gray = torch.rand(B, generator=generator, dtype=torch.float64) < cfg.gray_prob
+    luma = torch.tensor(LUMA, device=dev, dtype=dt).view(1, 3, 1, 1)
+    view = lambda v: v.to(device=dev, dtype=dt).view(-1, 1, 1, 1)  # noqa: E731
+    out = {}
+    for key, img in images.items():
+        x = img * view(bright)
+        mean = (x * luma).sum(1, keepdim=True).mean(dim=(2, 3), keepdim=True)
+        x = (mean + view(contrast) * (x - mean)).clamp(0, 1)
+        x = adjust_saturation(x, sat.to(device=dev, dtype=dt))
+        x = adjust_hue(x, hue.to(device=dev, dtype=dt)).clamp(0, 1)
+        g = (x * luma).sum(1, keepdim=True).expand_as(x)
+        out[key] = torch.where(view(gray.to(torch.float64)) > 0, g, x)
+    return out
+
+
+def augment_depth_batch(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, generator: torch.Generator
+                        ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """Flip (geometry) then jitter (network inputs) a depth/pose training batch.
+
+    Returns:
+        ``(batch, net_inputs)``: the (possibly mirrored) batch the losses use, and the jittered images
+        ``{key: (B,3,H,W)}`` for every image key present, which the depth and pose networks see.
+    """
+    B = batch["image"].shape[0]
+    flip = torch.rand(B, generator=generator, dtype=torch.float64) < cfg.flip_prob
+    batch = flip_batch(batch, flip)
+    images = {k: batch[k] for k in IMAGE_KEYS if k in batch}
+    return batch, jitter_images(images, cfg, generator)

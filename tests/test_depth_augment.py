@@ -1,0 +1,87 @@
+"""Depth training augmentation: mirrored batches keep the stereo/temporal geometry exact; jitter is deterministic."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dfvo.data.synthetic import SyntheticWorld
+from dfvo.losses.photometric import ssim_l1_error
+from dfvo.losses.reprojection import reproject
+from dfvo.training.augment import DepthAugmentConfig, augment_depth_batch, flip_batch, jitter_images
+
+H, W = 64, 192
+
+
+@pytest.fixture(scope="module")
+def batch() -> dict:
+    """One synthetic stereo + temporal sample with its true depth and true T_next_cur."""
+    world = SyntheticWorld(seed=0, num_frames=6, height=H, width=W, scenario="straight")
+    f = world.render(2, right=True, flow=True)
+    poses = world.poses()
+    return {"image": f["image"][None], "image_right": f["image_right"][None], "image_next": world.image(3)[None],
+            "K": f["K"][None].float(), "T_right_left": f["T_right_left"][None].float(), "depth": f["depth"][None],
+            "T_next_cur": (torch.linalg.inv(poses[3]) @ poses[2]).float()[None],
+            "static": (~f["dynamic_mask"] & (f["depth"] < 999))[None], "visible_next": f["flow_fwd_valid"][None]}
+
+
+def _warp_error(b: dict, source: str, T: torch.Tensor) -> float:
+    rep = reproject(b[source], b["depth"], T, b["K"])
+    err = ssim_l1_error(b["image"], rep.warped)
+    m = rep.valid & b["static"]
+    if source == "image_next":  # occlusions are the per-pixel minimum's job, not this test's
+        m &= b["visible_next"]
+    return float(err[m].median())
+
+
+@pytest.mark.parametrize("source,T_key", [("image_right", "T_right_left"), ("image_next", "T_next_cur")])
+def test_flipped_sample_warps_as_exactly_as_the_original(batch: dict, source: str, T_key: str) -> None:
+    """With the true depth, the mirrored sample (cx -> W-1-cx, stereo x translation negated) warps its source view
+    onto its target as well as the original does; keeping the unflipped K or T does not."""
+    flipped = flip_batch(batch, torch.tensor([True]))
+    flipped["static"] = batch["static"].flip(-1)
+    flipped["visible_next"] = batch["visible_next"].flip(-1)
+    assert torch.equal(flipped["image"], batch["image"].flip(-1))
+    assert torch.isclose(flipped["K"][0, 0, 2], (W - 1) - batch["K"][0, 0, 2])
+    T = flipped[T_key] if T_key == "T_right_left" else batch[T_key].clone()
+    if T_key == "T_next_cur":  # mirroring the world conjugates the motion by diag(-1, 1, 1)
+        M = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+        T = M @ T @ M
+    original = _warp_error(batch, source, batch[T_key])
+    mirrored = _warp_error(flipped, source, T)
+    assert original < 5e-3 and mirrored < 5e-3
+    assert abs(mirrored - original) < 2e-3
+    if T_key == "T_right_left":  # the un-negated baseline puts the partner camera on the wrong side
+        assert _warp_error(flipped, source, batch[T_key]) > 3 * max(mirrored, 1e-3)
+
+
+def test_jitter_is_shared_by_a_samples_images_and_reproducible(batch: dict) -> None:
+    cfg = DepthAugmentConfig(flip_prob=0.0, jitter_prob=1.0, gray_prob=0.0)
+    images = {"image": batch["image"], "image_right": batch["image"]}
+    a = jitter_images(images, cfg, torch.Generator().manual_seed(3))
+    b = jitter_images(images, cfg, torch.Generator().manual_seed(3))
+    assert torch.equal(a["image"], b["image"])  # same seed, same draw
+    assert torch.equal(a["image"], a["image_right"])  # one draw per sample, applied to all its images
+    assert (a["image"] - batch["image"]).abs().mean() > 1e-3
+    assert a["image"].min() >= 0 and a["image"].max() <= 1
+    none = jitter_images(images, DepthAugmentConfig(jitter_prob=0.0), torch.Generator().manual_seed(3))
+    assert torch.allclose(none["image"], batch["image"], atol=1e-5)
+    gray = jitter_images(images, DepthAugmentConfig(jitter_prob=0.0, gray_prob=1.0), torch.Generator())["image"]
+    assert torch.allclose(gray[:, 0], gray[:, 1]) and torch.allclose(gray[:, 1], gray[:, 2])
+    luma = (batch["image"] * torch.tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)).sum(1)
+    assert torch.allclose(gray[:, 0], luma, atol=1e-5)
+
+
+def test_augment_batch_only_jitters_network_inputs(batch: dict) -> None:
+    cfg = DepthAugmentConfig(flip_prob=0.0, jitter_prob=1.0)
+    out, net = augment_depth_batch(batch, cfg, torch.Generator().manual_seed(0))
+    assert torch.equal(out["image"], batch["image"])  # the losses see the real images
+    assert set(net) == {"image", "image_right", "image_next"}
+    assert (net["image"] - batch["image"]).abs().mean() > 1e-3
+
+
+def test_bad_settings_name_the_key() -> None:
+    with pytest.raises(ValueError, match="model.augment.flip_prob"):
+        DepthAugmentConfig(flip_prob=1.5)
+    with pytest.raises(ValueError, match="model.augment.hue"):
+        DepthAugmentConfig(hue=0.7)
