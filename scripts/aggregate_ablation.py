@@ -1,7 +1,8 @@
 """Collect infer.py runs (a multirun sweep folder, or several run folders) into a markdown ablation table.
 
-Rows are the configurations (only the config groups that vary across the runs are shown, like the paper's
-ablation table); columns are sequences. A cell holds ``t_err % / r_err deg/100m`` when the sequence is long enough
+Rows are the configurations (only the config groups, and the other command-line overrides such as
+``flow.refine.iterations``, that vary across the runs are shown, like the paper's ablation table); columns are
+sequences. A cell holds ``t_err % / r_err deg/100m`` when the sequence is long enough
 for the KITTI metrics (>= 100 m), otherwise ``RPE m / ATE m``; the fallback rate of the run is added with
 ``--fallback``.
 
@@ -55,13 +56,16 @@ def table(runs: list[dict[str, Any]], fallback: bool = False) -> str:
     """Markdown table: one row per configuration, one column per sequence."""
     if not runs:
         raise ValueError("aggregate_ablation: no summary.json found (did the runs finish?)")
-    groups = [g for g in GROUPS if any(g in r.get("choices", {}) for r in runs)]
-    varying = [g for g in groups if len({r.get("choices", {}).get(g) for r in runs}) > 1] or groups[:1]
+    for r in runs:  # one namespace: group choices, then the other overrides (a group wins a name clash)
+        r["_settings"] = {**{k: str(v) for k, v in (r.get("overrides") or {}).items()}, **r.get("choices", {})}
+    overridden = sorted({k for r in runs for k in (r.get("overrides") or {})} - set(GROUPS))
+    groups = [g for g in (*GROUPS, *overridden) if any(g in r["_settings"] for r in runs)]
+    varying = [g for g in groups if len({r["_settings"].get(g) for r in runs}) > 1] or groups[:1]
     sequences = sorted({r["sequence"] for r in runs})
     long_metric = any((r.get("metrics") or {}).get("t_err_pct") is not None for r in runs)
     rows: dict[tuple[str, ...], dict[str, str]] = {}
     for r in runs:
-        key = tuple(str(r.get("choices", {}).get(g, "")) for g in varying)
+        key = tuple(str(r["_settings"].get(g, "")) for g in varying)
         rows.setdefault(key, {})[r["sequence"]] = cell(r, fallback)
     unit = "t_err (%) / r_err (deg/100m)" if long_metric else "RPE (m) / ATE (m)"
     head = "| " + " | ".join(varying + sequences) + " |"

@@ -291,6 +291,21 @@ def test_aggregate_table_from_hand_written_runs(tmp_path: Path) -> None:
     assert "| pnp | 4.00 / 0.50 (25% CM) |  |" in lines
 
 
+def test_aggregate_table_shows_varying_overrides(tmp_path: Path) -> None:
+    """A swept key that is not a config group (``flow.refine.iterations=0,5``) becomes a column of the table."""
+    sys.path.insert(0, str(REPO / "scripts"))
+    from aggregate_ablation import load_runs, table
+
+    for name, tracker, iters, rpe in (("a", "hybrid", "0", 1.2), ("b", "hybrid", "5", 0.15), ("c", "pnp", "5", 0.2)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps({
+            "sequence": "06", "metrics": {"rpe_m": rpe, "ate_m": 1.0}, "choices": {"tracker": tracker},
+            "overrides": {"flow.refine.iterations": iters}}))
+    lines = table(load_runs([tmp_path])).splitlines()
+    assert "| tracker | flow.refine.iterations | 06 |" in lines
+    assert "| hybrid | 0 | 1.2 / 1 |" in lines and "| hybrid | 5 | 0.15 / 1 |" in lines
+
+
 def _needs_shipped_checkpoints() -> None:
     for ckpt in ("checkpoints/flow.safetensors", "checkpoints/depth.safetensors"):
         if not (REPO / ckpt).exists():

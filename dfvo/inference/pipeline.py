@@ -248,6 +248,9 @@ def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, refine: FlowRefine
     return _finish(cfg, seq, np.stack(traj), rows, timer, wall, out, writer)
 
 
+NOT_ABLATION_KEYS = ("out_dir", "data.root", "progress", "num_threads", "hydra.")
+
+
 def _choices() -> dict[str, str]:
     """The config-group choices of this Hydra job (empty outside Hydra), for the ablation table."""
     from hydra.core.hydra_config import HydraConfig
@@ -255,6 +258,22 @@ def _choices() -> dict[str, str]:
     if not HydraConfig.initialized():
         return {}
     return {k: str(v) for k, v in HydraConfig.get().runtime.choices.items() if not k.startswith("hydra")}
+
+
+def _overrides() -> dict[str, str]:
+    """The command line's ``key=value`` overrides that are not group choices (e.g. ``flow.refine.iterations=0``),
+    without paths and run settings; empty outside Hydra. The ablation table shows the ones that vary."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return {}
+    groups = set(_choices())
+    out = {}
+    for item in HydraConfig.get().overrides.task:
+        key, sep, value = item.lstrip("+~").partition("=")
+        if sep and key not in groups and "@" not in key and not key.startswith(NOT_ABLATION_KEYS):
+            out[key] = value
+    return out
 
 
 def _finish(cfg: DictConfig, seq: FrameSequence, pred: np.ndarray, rows: list[dict[str, Any]], timer: _Timer,
@@ -266,6 +285,7 @@ def _finish(cfg: DictConfig, seq: FrameSequence, pred: np.ndarray, rows: list[di
         "timing_ms_per_frame": {k: 1000 * v / max(n_pairs, 1) for k, v in timer.total.items()},
         "fallback": fallback_summary(rows, float(cfg.get("warn_fallback_rate", 0.2))),
         "choices": _choices(),
+        "overrides": _overrides(),
     }
     from dfvo.eval import align_trajectory, evaluate_trajectory, plot_trajectory, rebase_to_first
 

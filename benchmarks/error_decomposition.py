@@ -1,0 +1,75 @@
+"""Where does a trajectory's frame-to-frame error come from: translation length (scale), or direction and rotation?
+
+DF-VO computes each relative pose's rotation and translation direction from the flow (epipolar geometry) and only
+the translation length from the depth network. Replacing every predicted relative translation's length by the true
+one removes the scale error and leaves what the flow and the geometry did; the per-frame ratio of predicted to true
+lengths is the scale error itself. Prints one JSON object:
+
+    - ``as_run``: RPE (m, deg) and ATE (m) of the prediction (``--align``, 6-DoF by default);
+    - ``true_lengths``: the same with every relative translation rescaled to the true length;
+    - ``length_ratio``: mean, median and standard deviation of |t_pred| / |t_true| over frames;
+    - ``direction_error_deg``: median, mean and max angle between predicted and true translation directions.
+
+    python benchmarks/error_decomposition.py --gt ../shared/data/kitti_odom/poses/06.txt --pred OUT/06.txt
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dfvo.eval import evaluate_trajectory, read_kitti_poses  # noqa: E402
+
+
+def relative(poses: np.ndarray) -> np.ndarray:
+    """(N,4,4) T_w_k -> (N-1,4,4) T_k_k+1."""
+    return np.linalg.inv(poses[:-1]) @ poses[1:]
+
+
+def compose(rel: np.ndarray) -> np.ndarray:
+    out = [np.eye(4)]
+    for T in rel:
+        out.append(out[-1] @ T)
+    return np.stack(out)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--gt", required=True, help="KITTI pose file of the ground truth")
+    p.add_argument("--pred", required=True, help="KITTI pose file of the prediction (same frames)")
+    p.add_argument("--align", default="6dof", choices=["6dof", "7dof", "scale", "none"])
+    args = p.parse_args()
+    gt, pred = read_kitti_poses(args.gt), read_kitti_poses(args.pred)
+    if len(gt) != len(pred):
+        raise SystemExit(f"{args.pred} has {len(pred)} poses, {args.gt} has {len(gt)}; expected the same frames")
+    rg, rp = relative(gt), relative(pred)
+    lg, lp = np.linalg.norm(rg[:, :3, 3], axis=1), np.linalg.norm(rp[:, :3, 3], axis=1)
+    moving = lg > 1e-3
+    fixed = rp.copy()
+    fixed[moving, :3, 3] *= (lg[moving] / np.maximum(lp[moving], 1e-12))[:, None]
+    cos = np.einsum("ij,ij->i", rg[moving, :3, 3], rp[moving, :3, 3]) / np.maximum(lg[moving] * lp[moving], 1e-12)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    ratio = lp[moving] / lg[moving]
+
+    def summary(traj: np.ndarray) -> dict[str, float]:
+        m = evaluate_trajectory(gt, traj, align=args.align)
+        return {"rpe_m": round(m["rpe_m"], 4), "rpe_deg": round(m["rpe_deg"], 4), "ate_m": round(m["ate_m"], 4)}
+
+    print(json.dumps({
+        "gt": args.gt, "pred": args.pred, "align": args.align, "frames": len(gt),
+        "as_run": summary(pred), "true_lengths": summary(compose(fixed)),
+        "length_ratio": {"mean": round(float(ratio.mean()), 4), "median": round(float(np.median(ratio)), 4),
+                         "std": round(float(ratio.std()), 4)},
+        "direction_error_deg": {"median": round(float(np.median(angle)), 3), "mean": round(float(angle.mean()), 3),
+                                "max": round(float(angle.max()), 3)},
+    }))
+
+
+if __name__ == "__main__":
+    main()
