@@ -55,6 +55,18 @@ def test_flipped_sample_warps_as_exactly_as_the_original(batch: dict, source: st
         assert _warp_error(flipped, source, batch[T_key]) > 3 * max(mirrored, 1e-3)
 
 
+def test_flip_and_jitter_are_drawn_per_sample(batch: dict) -> None:
+    """In a batch of two, only the flagged sample is mirrored, and each sample gets its own colour draw."""
+    two = {k: torch.cat([v, v]) for k, v in batch.items()}
+    out = flip_batch(two, torch.tensor([True, False]))
+    assert torch.equal(out["image"][0], two["image"][0].flip(-1)) and torch.equal(out["image"][1], two["image"][1])
+    assert out["K"][0, 0, 2] != two["K"][0, 0, 2] and out["K"][1, 0, 2] == two["K"][1, 0, 2]
+    assert out["T_right_left"][0, 0, 3] == -two["T_right_left"][0, 0, 3]
+    assert out["T_right_left"][1, 0, 3] == two["T_right_left"][1, 0, 3]
+    jit = jitter_images({"image": two["image"]}, DepthAugmentConfig(jitter_prob=1.0), torch.Generator().manual_seed(1))
+    assert not torch.allclose(jit["image"][0], jit["image"][1], atol=1e-3)
+
+
 def test_jitter_is_shared_by_a_samples_images_and_reproducible(batch: dict) -> None:
     cfg = DepthAugmentConfig(flip_prob=0.0, jitter_prob=1.0, gray_prob=0.0)
     images = {"image": batch["image"], "image_right": batch["image"]}
@@ -85,3 +97,37 @@ def test_bad_settings_name_the_key() -> None:
         DepthAugmentConfig(flip_prob=1.5)
     with pytest.raises(ValueError, match="model.augment.hue"):
         DepthAugmentConfig(hue=0.7)
+
+
+def test_depth_module_feeds_jittered_images_to_the_networks_and_plain_ones_to_the_losses(batch: dict) -> None:
+    """With jitter on, the depth and pose networks see the jittered inputs while the photometric terms compare the
+    real images: the loss equals the loss of the same network inputs computed by hand from the plain batch."""
+    from omegaconf import OmegaConf
+
+    from dfvo.training.depth_module import DepthPoseModule
+
+    cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "stereo": True, "temporal": True,
+                                      "init_depth": 10.0, "augment": {"flip_prob": 0.0, "jitter_prob": 1.0}},
+                            "data": {"seed": 0}})
+    module = DepthPoseModule(cfg).eval()
+    sample = {k: batch[k] for k in ("image", "image_right", "image_next", "K", "T_right_left")}
+    sample["image_prev"] = batch["image_next"]
+    seen: dict[str, torch.Tensor] = {}
+
+    def record(name: str, position: int):
+        def hook(module: torch.nn.Module, args: tuple, output: object) -> None:
+            seen.setdefault(name, args[position])
+        return hook
+
+    module.depth_net.register_forward_hook(record("depth", 0))
+    module.pose_net.register_forward_hook(record("pose", 1))
+    with torch.no_grad():
+        loss = module.training_step(sample, 0)
+        _, net = augment_depth_batch(sample, module.augment, torch.Generator().manual_seed(0 * 1009 + 0))
+        expected, _, _ = module._losses(sample, net)
+    assert torch.equal(seen["depth"], net["image"]) and not torch.allclose(seen["depth"], sample["image"])
+    assert torch.equal(seen["pose"], net["image"])  # PoseNet(prev, image): the target frame is jittered too
+    torch.testing.assert_close(loss, expected)
+    with torch.no_grad():
+        plain, _, _ = module._losses(sample, None)
+    assert not torch.allclose(loss, plain)  # the networks' inputs changed the prediction, not the loss targets

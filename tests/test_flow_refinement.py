@@ -11,7 +11,7 @@ import torch.nn.functional as F
 
 from dfvo.data.synthetic import SyntheticWorld
 from dfvo.matching.consistency import forward_backward_inconsistency
-from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_flow, refine_forward_backward
+from dfvo.matching.flow_refinement import FlowRefinementConfig, _box, refine_flow, refine_forward_backward
 
 H, W = 96, 320
 
@@ -57,6 +57,30 @@ def test_zoom_flow_from_a_perturbed_start() -> None:
     err = (flow - true).norm(dim=1)[0, 8:-8, 8:-8]
     assert float(err0.median()) > 0.5
     assert float(err.median()) < 0.1
+
+
+def test_box_sums_equal_a_direct_window_mean() -> None:
+    """The running-sum box filter equals average pooling over the replicate-padded map, also for large offsets."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 37, 53, generator=g) + torch.tensor([0.0, 200.0, -50.0]).view(1, 3, 1, 1)
+    for window in (3, 11):
+        r = window // 2
+        ref = F.avg_pool2d(F.pad(x.double(), (r, r, r, r), mode="replicate"), window, stride=1)
+        torch.testing.assert_close(_box(x, window).double(), ref, atol=2e-5, rtol=0)
+
+
+def test_targets_outside_image2_and_non_finite_flow_constrain_nothing() -> None:
+    """Pixels whose whole window lands outside image 2 keep their flow (no border-clamped gradients pull them), a
+    NaN flow vector stays NaN and does not spread to its neighbours."""
+    i1, i2 = _shifted_pair((0.5, 0.0))
+    init = torch.zeros(1, 2, H, W)
+    init[..., :, : W // 2] = 1000.0  # left half points far outside image 2
+    init[0, :, 40, 250] = float("nan")
+    out = refine_flow(i1, i2, init, FlowRefinementConfig(iterations=3, sigma=0.0))
+    assert torch.equal(out[..., 8:-8, 8: W // 2 - 8], init[..., 8:-8, 8: W // 2 - 8])
+    assert torch.isnan(out[0, :, 40, 250]).all() and int(torch.isnan(out).sum()) == 2
+    err = (out[0, :, 8:-8, W // 2 + 8:-8] - torch.tensor([0.5, 0.0]).view(2, 1, 1)).norm(dim=0)
+    assert float(err.nanmedian()) < 0.04  # the rest converges as usual
 
 
 def test_flat_image_keeps_the_initial_flow() -> None:

@@ -262,6 +262,9 @@ def test_tiny_multirun_and_ablation_table(tmp_path: Path) -> None:
               *ORACLE, timeout=180)
     summaries = sorted(sweep.rglob("summary.json"))
     assert len(summaries) == 2
+    recorded = json.loads(summaries[0].read_text())["overrides"]  # the sweep's non-group overrides, as Hydra saw them
+    assert recorded["data.num_frames"] == "4" and recorded["img_res.height"] == str(H)
+    assert not {"progress", "num_threads", "hydra.sweep.dir", "correspondence", "flow", "depth"} & set(recorded)
     assert all(len(read_poses(p.parent / "synthetic_drive_s0.txt")) == 4 for p in summaries)
     out = subprocess.run([sys.executable, "scripts/aggregate_ablation.py", str(sweep)], cwd=REPO,
                          capture_output=True, text=True, check=True).stdout

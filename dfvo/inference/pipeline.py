@@ -248,7 +248,8 @@ def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, refine: FlowRefine
     return _finish(cfg, seq, np.stack(traj), rows, timer, wall, out, writer)
 
 
-NOT_ABLATION_KEYS = ("out_dir", "data.root", "progress", "num_threads", "hydra.")
+NOT_ABLATION_KEYS = ("out_dir", "data.root", "progress", "num_threads", "hydra.", "hydra/")
+SEQUENCE_KEYS = ("seq", "data.seq")  # the table's columns, not its rows
 
 
 def _choices() -> dict[str, str]:
@@ -271,7 +272,8 @@ def _overrides() -> dict[str, str]:
     out = {}
     for item in HydraConfig.get().overrides.task:
         key, sep, value = item.lstrip("+~").partition("=")
-        if sep and key not in groups and "@" not in key and not key.startswith(NOT_ABLATION_KEYS):
+        if (sep and key not in groups and "@" not in key and key not in SEQUENCE_KEYS
+                and not key.startswith(NOT_ABLATION_KEYS)):
             out[key] = value
     return out
 

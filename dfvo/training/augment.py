@@ -6,9 +6,10 @@ Convention:
     translation ``(-b, 0, 0)``. Pixel centres are at integer coordinates (:mod:`dfvo.geometry.camera`).
 
     - **Flip** (geometry, changes what the losses see): every image of a sample is mirrored left-right, so
-      ``u -> W-1-u`` and ``cx -> W-1-cx``. Mirroring the world about the camera's x = 0 plane puts the right
-      camera at ``-b``: ``T_right_left``'s x translation changes sign (no left/right swap is needed, so the
-      temporal neighbours stay the left camera's). The pose network is trained on the mirrored pairs as they are.
+      ``u -> W-1-u`` and ``cx -> W-1-cx``. Mirroring the world about the left camera's x = 0 plane
+      (``M = diag(-1, 1, 1, 1)``) turns ``T_right_left`` into ``M T_right_left M``: for a rectified rig the right
+      camera moves to ``-b`` (the x translation changes sign), with no left/right swap, so the temporal neighbours
+      stay the left camera's. The pose network is trained on the mirrored pairs as they are.
     - **Colour jitter** (appearance, the network inputs only): brightness and contrast factors in
       ``[1-a, 1+a]``, saturation in ``[1-a, 1+a]``, hue shift in ``[-h, h]`` turns, the same for every image
       of a sample so the frames stay photometrically consistent; with ``gray_prob`` a sample's inputs become
@@ -91,9 +92,9 @@ def flip_batch(batch: dict[str, torch.Tensor], flip: torch.Tensor) -> dict[str, 
         K[:, 0, 2] = torch.where(f, (W - 1) - K[:, 0, 2], K[:, 0, 2])
         out["K"] = K
     if "T_right_left" in batch:
-        T = batch["T_right_left"].clone()
-        T[:, 0, 3] = torch.where(f, -T[:, 0, 3], T[:, 0, 3])
-        out["T_right_left"] = T
+        T = batch["T_right_left"]
+        M = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=T.dtype, device=T.device))
+        out["T_right_left"] = torch.where(f.view(-1, 1, 1), M @ T @ M, T)
     return out
 
 
@@ -121,7 +122,7 @@ def jitter_images(images: dict[str, torch.Tensor], cfg: DepthAugmentConfig,
     view = lambda v: v.to(device=dev, dtype=dt).view(-1, 1, 1, 1)  # noqa: E731
     out = {}
     for key, img in images.items():
-        x = img * view(bright)
+        x = (img * view(bright)).clamp(0, 1)
         mean = (x * luma).sum(1, keepdim=True).mean(dim=(2, 3), keepdim=True)
         x = (mean + view(contrast) * (x - mean)).clamp(0, 1)
         x = adjust_saturation(x, sat.to(device=dev, dtype=dt))

@@ -9,10 +9,10 @@ Config (``cfg.model``, see ``conf/model/depth_*.yaml``):
     log_images_every (steps); monitor (metric of the "best" checkpoint). Validation logs the Eigen metrics
     raw (``val/abs_rel``, ..., metric depth) and median-scaled (``val/abs_rel_med``, ..., monocular models).
     augment (:class:`dfvo.training.augment.DepthAugmentConfig` fields, null or ``{flip_prob: 0, jitter_prob: 0}``:
-    none): flips and colour jitter drawn from a generator seeded by (``data.seed``, global step), so resuming is
-    exact. init_from: start from the weights of a checkpoint (``.safetensors``/``.pt`` DepthNet state dict, or a
-    depth ``.ckpt``; its pose network too when it holds one) instead of random weights (not a resume: step 0,
-    fresh optimiser).
+    none): flips and colour jitter drawn from a generator seeded by (``data.seed``, global step, DDP rank), so
+    resuming is exact. init_from: start from the weights of a checkpoint (``.safetensors``/``.pt`` DepthNet state
+    dict, or a depth ``.ckpt``; its pose network too when it holds one) instead of random weights (not a resume:
+    step 0, fresh optimiser; checkpoints record the path as ``model.initialised_from``).
 
 Loss (per scale s = 0..3, averaged over scales): every scale's disparity is upsampled to the input
 resolution (monodepth2), each source view (prev, next, stereo partner) is warped into the target, the
@@ -38,6 +38,7 @@ from dfvo.losses.smoothness import edge_aware_smoothness
 from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth
 from dfvo.models.pose_net import PoseNet
 from dfvo.training.augment import DepthAugmentConfig, augment_depth_batch
+from dfvo.training.hparams import recorded_config
 
 MODEL_TYPE_KEY = "dfvo_model_type"
 
@@ -84,24 +85,30 @@ class DepthPoseModule(L.LightningModule):
         init_from = _get(m, "init_from", None)
         if init_from:
             self._init_weights_from(str(init_from))
-        self.save_hyperparameters({"cfg": OmegaConf.to_container(cfg, resolve=True), MODEL_TYPE_KEY: self.model_type})
+        self.save_hyperparameters({"cfg": recorded_config(cfg), MODEL_TYPE_KEY: self.model_type})
 
     def _init_weights_from(self, path: str) -> None:
-        """Load DepthNet (required) and PoseNet (when the file holds it) weights from ``path``."""
+        """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path``."""
         import logging
+        from pathlib import Path
 
-        from dfvo.sources.networks import CheckpointError, load_weights
+        from dfvo.sources.networks import CheckpointError, _read_state, load_weights
 
         try:
             load_weights(self.depth_net, path, "depth network DepthNet")
         except CheckpointError as err:
             raise CheckpointError(f"model.init_from={path}: {err}") from err
-        if self.pose_net is not None:
-            try:
-                load_weights(self.pose_net, path, "pose network PoseNet")
-            except CheckpointError:
-                logging.getLogger("dfvo.training").info("model.init_from=%s holds no PoseNet: the pose network "
-                                                        "starts from random weights", path)
+        if self.pose_net is None:
+            return
+        state, _ = _read_state(Path(path), "depth network DepthNet")
+        if not any(k.startswith("pose_net.") for k in state):
+            logging.getLogger("dfvo.training").info("model.init_from=%s holds no PoseNet: the pose network starts "
+                                                    "from random weights", path)
+            return
+        try:
+            load_weights(self.pose_net, path, "pose network PoseNet")
+        except CheckpointError as err:
+            raise CheckpointError(f"model.init_from={path}: {err}") from err
 
     # ---------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -202,7 +209,9 @@ class DepthPoseModule(L.LightningModule):
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         net_inputs = None
         if self.augment is not None:
-            g = torch.Generator().manual_seed(self.augment_seed * 1_000_003 + int(self.global_step))
+            # one stream per (data seed, step, DDP rank): resumed runs draw the same, ranks draw differently
+            seed = (self.augment_seed * 1_000_003 + int(self.global_step)) * 1009 + int(self.global_rank)
+            g = torch.Generator().manual_seed(seed)
             batch, net_inputs = augment_depth_batch(batch, self.augment, g)
         loss, terms, vis = self._losses(batch, net_inputs)
         bs = batch["image"].shape[0]

@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe, occlusion_mask, self_supervised_flow_loss
 from dfvo.models.flow_net import FlowNet
 from dfvo.training.flow_viz import flow_to_color, scalar_to_color
+from dfvo.training.hparams import recorded_config
 
 MODES = ("supervised", "self")
 
@@ -112,7 +113,7 @@ class FlowModule(L.LightningModule):
         if init_from:
             load_flow_weights(self.net, init_from)
         if isinstance(cfg, DictConfig):
-            self.save_hyperparameters({"cfg": OmegaConf.to_container(cfg, resolve=True)})
+            self.save_hyperparameters({"cfg": recorded_config(cfg)})
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Forward and backward flow (B,2,H,W) of a pair of (B,3,H,W) images."""
