@@ -6,8 +6,13 @@ sequences. A cell holds ``t_err % / r_err deg/100m`` when the sequence is long e
 for the KITTI metrics (>= 100 m), otherwise ``RPE m / ATE m``; the fallback rate of the run is added with
 ``--fallback``.
 
+With ``--reference``, rows are labelled the way the paper's ablation table is: the reference configuration (the most
+common value of every varying setting) is the row "reference", and every other row is named by the settings in which
+it differs from it (``tracker=pnp``). Run one sweep per factor into sibling folders and aggregate them together.
+
 Usage:
     python scripts/aggregate_ablation.py multirun/infer/2026-01-01_12-00-00 [more folders] [--out table.md]
+        [--fallback] [--reference]
 
 Each run folder must hold the ``summary.json`` that infer.py writes (with its ``metrics`` and ``choices``).
 """
@@ -52,8 +57,9 @@ def cell(summary: dict[str, Any], fallback: bool) -> str:
     return text
 
 
-def table(runs: list[dict[str, Any]], fallback: bool = False) -> str:
-    """Markdown table: one row per configuration, one column per sequence."""
+def table(runs: list[dict[str, Any]], fallback: bool = False, reference: bool = False) -> str:
+    """Markdown table: one row per configuration, one column per sequence (``reference``: rows named by how they
+    differ from the most common configuration, see the module docstring)."""
     if not runs:
         raise ValueError("aggregate_ablation: no summary.json found (did the runs finish?)")
     for r in runs:  # one namespace: group choices, then the other overrides (a group wins a name clash)
@@ -68,11 +74,32 @@ def table(runs: list[dict[str, Any]], fallback: bool = False) -> str:
         key = tuple(str(r["_settings"].get(g, "")) for g in varying)
         rows.setdefault(key, {})[r["sequence"]] = cell(r, fallback)
     unit = "t_err (%) / r_err (deg/100m)" if long_metric else "RPE (m) / ATE (m)"
+    legend = f"Cells: {unit}" + ("; (CM) = constant-motion fallback rate" if fallback else "")
+    if reference:
+        return _reference_table(rows, varying, sequences, legend)
     head = "| " + " | ".join(varying + sequences) + " |"
     sep = "|" + "|".join(["---"] * (len(varying) + len(sequences))) + "|"
-    lines = [f"Cells: {unit}" + ("; (CM) = constant-motion fallback rate" if fallback else ""), "", head, sep]
+    lines = [legend, "", head, sep]
     for key in sorted(rows):
         lines.append("| " + " | ".join(list(key) + [rows[key].get(s, "") for s in sequences]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _reference_table(rows: dict[tuple[str, ...], dict[str, str]], varying: list[str], sequences: list[str],
+                     legend: str) -> str:
+    """Rows named by their difference from the most common value of each varying setting; reference first."""
+    from collections import Counter
+
+    common = [Counter(key[i] for key in rows).most_common(1)[0][0] for i in range(len(varying))]
+    reference = ", ".join(f"{g}={v}" for g, v in zip(varying, common) if v)
+    named = []
+    for key, cells in rows.items():
+        diff = [f"{g}={v}" for g, v, c in zip(varying, key, common) if v != c]
+        named.append((bool(diff), ", ".join(diff) or "reference", cells))
+    lines = [legend, f"Reference: {reference}", "", "| variant | " + " | ".join(sequences) + " |",
+             "|" + "|".join(["---"] * (1 + len(sequences))) + "|"]
+    for _, name, cells in sorted(named):
+        lines.append(f"| {name} | " + " | ".join(cells.get(s, "") for s in sequences) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -82,8 +109,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None,
                         help="also write the table to this markdown file (missing folders are created)")
     parser.add_argument("--fallback", action="store_true", help="add the constant-motion fallback rate per cell")
+    parser.add_argument("--reference", action="store_true",
+                        help="name rows by how they differ from the most common configuration (paper layout)")
     args = parser.parse_args(argv)
-    text = table(load_runs(args.folders), args.fallback)
+    text = table(load_runs(args.folders), args.fallback, args.reference)
     if args.out is not None:
         try:
             args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -307,6 +307,11 @@ def test_aggregate_table_shows_varying_overrides(tmp_path: Path) -> None:
     lines = table(load_runs([tmp_path])).splitlines()
     assert "| tracker | flow.refine.iterations | 06 |" in lines
     assert "| hybrid | 0 | 1.2 / 1 |" in lines and "| hybrid | 5 | 0.15 / 1 |" in lines
+    # paper layout: the most common setting of each factor is the reference, other rows say what they change
+    lines = table(load_runs([tmp_path]), reference=True).splitlines()
+    assert "Reference: tracker=hybrid, flow.refine.iterations=5" in lines
+    assert lines[3:] == ["| variant | 06 |", "|---|---|", "| reference | 0.15 / 1 |",
+                         "| flow.refine.iterations=0 | 1.2 / 1 |", "| tracker=pnp | 0.2 / 1 |"]
 
 
 def _needs_shipped_checkpoints() -> None:

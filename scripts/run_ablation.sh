@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# One-factor-at-a-time ablation in the layout of the paper's table: a reference run, then one sweep per factor, each
+# into its own folder under OUT; then the markdown table (rows = how a run differs from the reference).
+#
+#   scripts/run_ablation.sh OUT [infer.py overrides shared by every run...]
+#   scripts/run_ablation.sh runs/ablation_kitti06 data=kitti_odom data.root=../shared/data/kitti_odom seq=06
+#   scripts/run_ablation.sh runs/ablation_synthetic flow=oracle depth=oracle data.num_frames=100
+#
+# The reference is infer.py's default configuration (hybrid tracker, local best-K, simple scale, GRIC, 640x192,
+# refined network flow). Sweeps run in parallel through the configured Hydra launcher (joblib, 2 processes).
+set -euo pipefail
+if [[ $# -lt 1 ]]; then
+    echo "usage: $0 OUT [infer.py overrides...]" >&2
+    exit 2
+fi
+OUT="$1"
+shift
+cd "$(dirname "$0")/.."
+mkdir -p "$OUT"
+sweep() {  # sweep NAME OVERRIDES...
+    local name="$1"
+    shift
+    python infer.py -m "$@" "hydra.sweep.dir=$OUT/$name" progress=false "${COMMON[@]}"
+}
+COMMON=("$@")
+ORACLE=0
+for arg in "$@"; do [[ "$arg" == flow=oracle ]] && ORACLE=1; done
+sweep tracker tracker=hybrid,pnp,e          # hybrid = the reference run
+sweep correspondence correspondence=uniform,best_n
+sweep scale scale=iterative
+sweep model_selection model_selection=flow
+sweep img_res img_res=full
+if [[ $ORACLE -eq 0 ]]; then                  # factors of the network flow
+    sweep flow_refine flow.refine.iterations=0
+    sweep online online_finetune=true
+fi
+python scripts/aggregate_ablation.py "$OUT" --reference --fallback --out "$OUT/table.md"
