@@ -4,9 +4,12 @@ DF-VO takes each frame's translation scale from the ratio of CNN depth to triang
 correspondences, so the frame-to-frame spread of that ratio is the spread of the translation lengths, whatever the
 flow. Here the triangulation uses the TRUE relative pose of every pair (KITTI ground truth), so the ratio
 ``z_cnn / z_true`` isolates the depth network: per frame its median over the correspondences the tracker would use
-(shipped flow network + photometric refinement + local best-K at 0.1 px, rows below the top 30 %, depth in
-(0, 50] m, more than 3 px of flow), then over frames the mean (metric bias) and standard deviation (per-frame scale
-noise; a 10 % spread is ~0.12 m of RPE at KITTI speed), and the mean ratio per true-depth band.
+(shipped flow network + photometric refinement + local best-K at 0.1 px, rows below the top 30 %, CNN depth in
+(0, 50] m), then over frames the mean (metric bias) and standard deviation (per-frame scale noise; a 10 % spread is
+~0.12 m of RPE at KITTI speed); ``gross_error_fraction``: the share of those points whose CNN depth is off by more
+than a factor 2 (what makes the tracker's 1-D RANSAC lock onto a wrong scale). ``parallax_3px`` repeats the
+statistics on the points with more than 3 px of flow (their triangulation is well conditioned, so the ratio there
+is the network's alone), with the mean ratio per true-depth band.
 
     python benchmarks/depth_scale_consistency.py --depth checkpoints/depth.safetensors
 
@@ -55,7 +58,7 @@ def main() -> None:
     if ds.poses is None:
         raise SystemExit(f"{args.root}/poses/{args.seq}.txt is needed (true poses)")
     K = ds.intrinsics[None].double()
-    per_frame, bands = [], {b: [] for b in BANDS}
+    per_frame, per_frame_all, gross, bands = [], [], [], {b: [] for b in BANDS}
     pairs = list(range(len(ds) - 1))
     for start in range(0, len(pairs), 4):
         ks = pairs[start:start + 4]
@@ -76,7 +79,12 @@ def main() -> None:
             pi, pj = sel.pts_i[b:b + 1], sel.pts_j[b:b + 1]
             z_cnn, ok = sample_depth(depth[b:b + 1], pi)
             z_tri, front = triangulated_depth(R, t, K, pi, pj)
-            m = ok & front & sel.mask[b:b + 1] & ((pj - pi).norm(dim=-1) > 3.0)
+            used = ok & front & sel.mask[b:b + 1]
+            if int(used.sum()) >= 20:
+                ratio_all = z_cnn[used] / (z_tri[used] * length)
+                per_frame_all.append(float(ratio_all.median()))
+                gross.append(float(((ratio_all > 2.0) | (ratio_all < 0.5)).double().mean()))
+            m = used & ((pj - pi).norm(dim=-1) > 3.0)
             if int(m.sum()) < 20:
                 continue
             z_true = z_tri[m] * length
@@ -86,15 +94,20 @@ def main() -> None:
                 band = (z_true >= lo) & (z_true < hi)
                 if int(band.sum()) >= 20:
                     bands[(lo, hi)].append(float(ratio[band].median()))
-    r = np.array(per_frame)
+    r, r_all = np.array(per_frame), np.array(per_frame_all)
     print(json.dumps({
         "depth": args.depth, "flow": args.flow, "sequence": args.seq, "resolution": [args.height, args.width],
         "depth_network_input": list(depth_src.input_size) if depth_src.input_size else None,
-        "frames": len(r), "cnn_over_true_mean": round(float(r.mean()), 4),
-        "cnn_over_true_per_frame_std": round(float(r.std()), 4),
-        "per_depth_band": {f"{lo:g}-{hi:g} m": {"frames": len(v), "mean": round(float(np.mean(v)), 3) if v else None,
-                                                 "std": round(float(np.std(v)), 3) if v else None}
-                           for (lo, hi), v in bands.items()},
+        "frames": len(r_all), "cnn_over_true_mean": round(float(r_all.mean()), 4),
+        "cnn_over_true_per_frame_std": round(float(r_all.std()), 4),
+        "gross_error_fraction": round(float(np.mean(gross)), 4),
+        "parallax_3px": {
+            "frames": len(r), "cnn_over_true_mean": round(float(r.mean()), 4),
+            "cnn_over_true_per_frame_std": round(float(r.std()), 4),
+            "per_depth_band": {f"{lo:g}-{hi:g} m": {"frames": len(v),
+                                                     "mean": round(float(np.mean(v)), 3) if v else None,
+                                                     "std": round(float(np.std(v)), 3) if v else None}
+                               for (lo, hi), v in bands.items()}},
     }))
 
 
