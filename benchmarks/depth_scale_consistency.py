@@ -43,6 +43,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--depth", default=str(repo / "checkpoints/depth.safetensors"))
     p.add_argument("--depth-input-size", default=None, help="H,W the depth network runs at (default: metadata)")
+    p.add_argument("--flip-average", action="store_true", help="depth.flip_average: blend with the mirrored image")
     p.add_argument("--flow", default=str(repo / "checkpoints/flow.safetensors"))
     p.add_argument("--root", default=str(repo.parent / "shared/data/kitti_odom"))
     p.add_argument("--seq", default="06")
@@ -52,7 +53,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     size = None if args.depth_input_size is None else [int(v) for v in args.depth_input_size.split(",")]
-    depth_src = NetworkDepth(args.depth, input_size=size)
+    depth_src = NetworkDepth(args.depth, input_size=size, flip_average=args.flip_average)
     flow_src = NetworkFlow(args.flow)
     ds = KittiOdometry(args.root, args.seq, height=args.height, width=args.width, stereo=False)
     if ds.poses is None:
@@ -96,7 +97,8 @@ def main() -> None:
                     bands[(lo, hi)].append(float(ratio[band].median()))
     r, r_all = np.array(per_frame), np.array(per_frame_all)
     print(json.dumps({
-        "depth": args.depth, "flow": args.flow, "sequence": args.seq, "resolution": [args.height, args.width],
+        "depth": args.depth, "flip_average": args.flip_average, "flow": args.flow, "sequence": args.seq,
+        "resolution": [args.height, args.width],
         "depth_network_input": list(depth_src.input_size) if depth_src.input_size else None,
         "frames": len(r_all), "cnn_over_true_mean": round(float(r_all.mean()), 4),
         "cnn_over_true_per_frame_std": round(float(r_all.std()), 4),

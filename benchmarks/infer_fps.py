@@ -74,7 +74,9 @@ def main() -> None:
             ov += [f"data.root={args.root}", f"data.end={args.frames}"]
         if args.seq is not None:
             ov.append(f"seq={args.seq}")
-        if args.sources != "oracle":
+        if args.sources == "oracle":  # explicit: the default `auto` would pick the shipped checkpoints
+            ov += ["flow=oracle", "depth=oracle"]
+        else:
             flow, depth = ((args.flow_ckpt, args.depth_ckpt) if args.sources == "network"
                            else _random_checkpoints(tmp, args.flow_variant))
             ov += ["flow=network", "depth=network", f"flow.checkpoint={flow}", f"depth.checkpoint={depth}",

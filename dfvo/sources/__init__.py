@@ -116,5 +116,5 @@ def build_depth_source(cfg: Any, world: Any = None, device: str = "cpu") -> Orac
     if kind == "network":
         return NetworkDepth(find_checkpoint(cfg.get("checkpoint")), cfg.get("depth_scale", 1.0),
                             cfg.get("min_depth", 0.1), cfg.get("max_depth", 100.0), device=device,
-                            input_size=cfg.get("input_size"))
+                            input_size=cfg.get("input_size"), flip_average=bool(cfg.get("flip_average", False)))
     raise ValueError(f"depth.source={kind!r}; expected 'oracle', 'network' or 'auto' (conf/depth/*.yaml)")

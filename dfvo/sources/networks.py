@@ -31,7 +31,8 @@ from torch import nn
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
 
-__all__ = ["CheckpointError", "load_weights", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
+__all__ = ["CheckpointError", "blend_flipped_inverse_depth", "load_weights", "NetworkFlow", "NetworkDepth",
+           "resolve_input_size"]
 
 VARIANTS = ("default", "small", "tiny")
 PREFIXES = ("", "net.", "flow_net.", "flow.", "depth_net.", "depth.", "pose_net.", "model.")
@@ -194,6 +195,24 @@ class NetworkFlow:
             return _resize_flow(fwd, size), _resize_flow(bwd, size)
 
 
+def blend_flipped_inverse_depth(inv_depth: torch.Tensor, inv_depth_of_mirror: torch.Tensor,
+                                border: float = 0.05) -> torch.Tensor:
+    """Blend a prediction with the prediction for the mirrored image (mirrored back), both (B,1,H,W) inverse depth.
+
+    The mean of the two, except near the left and right borders: a stereo-trained network is unreliable on the
+    strip of the left image its right partner does not see (the left border), so there the mirrored prediction
+    (whose unreliable strip is on the other side) takes over, fading linearly to the mean between ``border`` and
+    ``2 * border`` of the width; symmetrically at the right border (monodepth's post-processing).
+    """
+    KORNIA_CHECK_SHAPE(inv_depth, ["B", "1", "H", "W"])
+    w = inv_depth.shape[-1]
+    u = torch.linspace(0.0, 1.0, w, dtype=inv_depth.dtype, device=inv_depth.device)
+    near_left = (1.0 - ((u - border) / border).clamp(0.0, 1.0)).view(1, 1, 1, w)
+    near_right = near_left.flip(-1)
+    mean = 0.5 * (inv_depth + inv_depth_of_mirror)
+    return near_right * inv_depth + near_left * inv_depth_of_mirror + (1.0 - near_left - near_right) * mean
+
+
 class NetworkDepth:
     """Depth from a trained :class:`~dfvo.models.depth_net.DepthNet`.
 
@@ -204,12 +223,15 @@ class NetworkDepth:
         device: torch device.
         input_size: (h, w) the network runs at (see module docstring); None: checkpoint metadata or image size
             rounded to multiples of 32.
+        flip_average: also run the network on the mirrored images and blend the two inverse depths (monodepth's
+            test-time post-processing; see :func:`blend_flipped_inverse_depth`); twice the network time.
     """
 
     name = "network"
 
     def __init__(self, checkpoint: str | Path, depth_scale: float = 1.0, min_depth: float = 0.1,
-                 max_depth: float = 100.0, device: str = "cpu", input_size: Any = None) -> None:
+                 max_depth: float = 100.0, device: str = "cpu", input_size: Any = None,
+                 flip_average: bool = False) -> None:
         if depth_scale <= 0:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)
@@ -218,6 +240,7 @@ class NetworkDepth:
         self.depth_scale = float(depth_scale)
         self.device = torch.device(device)
         self.input_size = resolve_input_size(input_size, meta, "depth")
+        self.flip_average = bool(flip_average)
 
     def __call__(self, images: torch.Tensor, indices: list[int] | None = None) -> torch.Tensor:
         """Depth (B,1,H,W) in metres of images (B,3,H,W), computed at the network's input size (multiples of 32)
@@ -227,7 +250,13 @@ class NetworkDepth:
         nh, nw = self.input_size or (h, w)
         hp, wp = max(64, round(nh / 32) * 32), max(64, round(nw / 32) * 32)
         with torch.no_grad():
-            depth = self.model.depth(_resize(images.to(self.device), (hp, wp)))
+            inputs = _resize(images.to(self.device), (hp, wp))
+            if self.flip_average:
+                both = self.model.depth(torch.cat([inputs, inputs.flip(-1)]))
+                plain, mirrored = both.split(inputs.shape[0])
+                depth = 1.0 / blend_flipped_inverse_depth(1.0 / plain, 1.0 / mirrored.flip(-1))
+            else:
+                depth = self.model.depth(inputs)
             if (hp, wp) != (h, w):
                 depth = F.interpolate(depth, size=(h, w), mode="bilinear", align_corners=False)
             return depth * self.depth_scale
