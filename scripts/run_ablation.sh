@@ -6,8 +6,8 @@
 #   scripts/run_ablation.sh runs/ablation_kitti06 data=kitti_odom data.root=../shared/data/kitti_odom seq=06
 #   scripts/run_ablation.sh runs/ablation_synthetic flow=oracle depth=oracle data.num_frames=100
 #
-# The reference is infer.py's default configuration (hybrid tracker, local best-K, simple scale, GRIC, 640x192,
-# refined network flow). Sweeps run in parallel through the configured Hydra launcher (joblib, 2 processes).
+# The reference is infer.py's default configuration (hybrid tracker, local best-K, simple scale from both frames'
+# depths, GRIC, 640x192, refined network flow). Sweeps run in parallel through the configured Hydra launcher (joblib, 2 processes).
 set -euo pipefail
 if [[ $# -lt 1 ]]; then
     echo "usage: $0 OUT [infer.py overrides...]" >&2
@@ -28,6 +28,7 @@ for arg in "$@"; do [[ "$arg" == flow=oracle ]] && ORACLE=1; done
 sweep tracker tracker=hybrid,pnp,e          # hybrid = the reference run
 sweep correspondence correspondence=uniform,best_n
 sweep scale scale=iterative
+sweep scale_views scale.scale_depth_views=1   # the paper's one-view scale
 sweep model_selection model_selection=flow
 sweep img_res img_res=full
 if [[ $ORACLE -eq 0 ]]; then                  # factors of the network flow

@@ -217,6 +217,23 @@ def test_network_flow_roundtrip_matches_model(tmp_path: Path) -> None:
     torch.testing.assert_close(bwd, rb)
 
 
+@needs_stack
+def test_two_view_scale_gets_each_pairs_later_depth_across_batches(tmp_path: Path) -> None:
+    """scale.scale_depth_views=2: the loop hands the tracker frame i+1's depth for pair (i, i+1), carried over
+    batch boundaries (9 frames, batches of 2 pairs); with the true depth any off-by-one frame would bias the
+    geometric mean of the two scales and the RPE of the E-tracker's frames."""
+    n = 9
+    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "batch_size=2", "scale.scale_depth_views=2",
+              *SMALL, *ORACLE)
+    gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()
+    t_err, _ = relative_errors(gt, read_poses(tmp_path / "synthetic_drive_s0.txt"))
+    with (tmp_path / "frames.csv").open() as f:
+        rows = list(csv.DictReader(f))[1:]
+    e_frames = [k for k, r in enumerate(rows) if r["tracker"] == "E"]
+    assert len(e_frames) >= 3 and len({k // 2 for k in e_frames}) >= 2, [r["tracker"] for r in rows]
+    assert t_err[e_frames].max() <= 1e-3, t_err
+
+
 def test_oracle_sources_return_world_truth_and_refuse_real_data() -> None:
     world = SyntheticWorld(seed=1, num_frames=4, height=32, width=64)
     img = torch.zeros(2, 3, 32, 64)

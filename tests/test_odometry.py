@@ -126,3 +126,35 @@ def test_full_drive_with_iterative_scale():
     assert err[static].median() < 1e-4
     assert (err[static] < 1e-3).float().mean() > 0.9
     assert err[static].max() < 2e-2
+
+
+def test_two_view_scale_cancels_opposite_depth_scale_errors(drive):
+    """Depth of frame i 20 % too far and of frame j 20 % too near: the paper's one-view scale makes every
+    translation 1.2x too long; ``scale_depth_views=2`` takes the geometric mean of the two views' scales,
+    sqrt(1.2 / 1.2) = 1, i.e. the true translation."""
+    w, ff, fb, d = drive
+    n = 3  # straight driving: the E-tracker takes these pairs
+    d_next = torch.stack([w.render(k + 1)["depth"] for k in range(n)])
+    K, P = w.intrinsics(), w.poses()
+    true_len = torch.stack([(torch.linalg.inv(P[k]) @ P[k + 1])[:3, 3].norm() for k in range(n)])
+    one = VisualOdometry(TrackerConfig(tracker="e")).run(ff[:n], fb[:n], 1.2 * d[:n], K, batch_size=n,
+                                                         depths_next=d_next / 1.2)  # ignored with one view
+    two = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2)).run(
+        ff[:n], fb[:n], 1.2 * d[:n], K, batch_size=n, depths_next=d_next / 1.2)
+    assert all(r.diagnostics["tracker"] == "E" for r in one + two)
+    len_one = torch.stack([r.T_prev_cur[:3, 3].norm() for r in one])
+    assert torch.allclose(len_one / true_len, torch.full((n,), 1.2, dtype=torch.float64), atol=2e-3)
+    assert rpe(P, two).max() < 1e-3
+    vo = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2))  # streaming gives the same
+    stream = [vo.step(ff[k:k + 1], fb[k:k + 1], 1.2 * d[k:k + 1], K[None], depth_cur=d_next[k:k + 1] / 1.2)
+              for k in range(n)]
+    for a, b in zip(two, stream, strict=True):
+        assert torch.allclose(a.T_w_cur, b.T_w_cur, atol=1e-9)
+
+
+def test_two_view_scale_needs_the_later_depth(drive):
+    w, ff, fb, d = drive
+    with pytest.raises(ValueError, match="scale_depth_views=2"):
+        VisualOdometry(TrackerConfig(scale_depth_views=2)).run(ff[:2], fb[:2], d[:2], w.intrinsics())
+    with pytest.raises(ValueError, match="scale_depth_views"):
+        TrackerConfig(scale_depth_views=3)

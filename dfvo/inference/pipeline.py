@@ -7,7 +7,8 @@ Convention:
     (``VisualOdometry.run``: selection and E-RANSAC batched, the rest in order). Frame 0's pose is the identity;
     frame k's pose ``T_w_k`` is written to ``OUT/SEQ.txt`` (KITTI format) as soon as it is known, with its row of
     ``frames.csv``.
-    Depth given to the tracker is the depth of the earlier frame of each pair, in metres.
+    Depth given to the tracker is the depth of the earlier frame of each pair, in metres (with
+    ``scale.scale_depth_views=2`` also the later frame's; each frame's depth is computed once).
 """
 
 from __future__ import annotations
@@ -181,6 +182,8 @@ def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, refine: FlowRefine
     poses.write(T_w)
     table.write({"frame": 0, "tracker": "init"})
     traj, rows, timer = [T_w.copy()], [], _Timer()
+    two_view_scale = vo.cfg.scale_depth_views == 2  # the tracker also needs the later frame's depth of each pair
+    depth_carry: torch.Tensor | None = None  # depth of the first frame of the next batch (= this batch's last)
     batch = max(1, int(cfg.get("batch_size", 4)))
     n_pairs = seq.length - 1
     bar = tqdm(total=n_pairs, desc=f"dfvo {seq.name}", unit="frame", disable=not cfg.get("progress", True))
@@ -210,12 +213,19 @@ def _loop(cfg: DictConfig, seq: FrameSequence, flow_src: Any, refine: FlowRefine
                 t_refine = time.perf_counter() - t0
                 timer.add("refine", t_refine)
             t0 = time.perf_counter()
-            depth = depth_src(imgs[:-1], idx)
+            depth_next = None
+            if two_view_scale:
+                later = depth_src(imgs[1:], [i + 1 for i in idx])
+                depth = torch.cat([depth_src(imgs[:1], idx[:1]) if depth_carry is None else depth_carry, later[:-1]])
+                depth_next, depth_carry = later, later[-1:]
+            else:
+                depth = depth_src(imgs[:-1], idx)
             t_depth = time.perf_counter() - t0
             timer.add("flow", t_flow)
             timer.add("depth", t_depth)
             t0 = time.perf_counter()
-            results = vo.run(flow_fwd, flow_bwd, depth, K.expand(len(idx), 3, 3), batch_size=len(idx))
+            results = vo.run(flow_fwd, flow_bwd, depth, K.expand(len(idx), 3, 3), batch_size=len(idx),
+                             depths_next=depth_next)
             t_track = (time.perf_counter() - t0) / len(idx)
             for k, (i, res) in enumerate(zip(idx, results)):
                 timer.add("tracker", t_track)

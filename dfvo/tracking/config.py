@@ -10,6 +10,7 @@ _CHOICES = {
     "tracker": ("hybrid", "e", "pnp"),
     "selection_method": ("local_best_k", "best_n", "uniform"),
     "scale_method": ("simple", "iterative"),
+    "scale_depth_views": (1, 2),
     "model_selection": ("gric", "flow"),
 }
 
@@ -32,6 +33,10 @@ class TrackerConfig:
             flow_magnitude_threshold pixels).
         gric_sigma: fixed residual standard deviation (pixels).
         scale_method: "simple" (1-D RANSAC on depth ratios) or "iterative" (paper Alg. 2).
+        scale_depth_views: 1 (paper): the scale comes from the CNN depth of the earlier frame i; 2: also from the
+            depth of the later frame j (its own 1-D RANSAC on depth ratios in camera j) and the two scales are
+            combined by their geometric mean (one alone when the other fails). Our addition: per-frame errors of
+            the CNN depth's scale are nearly independent from frame to frame, so two views halve their variance.
         scale_min_points, scale_ransac_trials, scale_ransac_samples, scale_inlier_threshold: simple scale.
         iterative_max_iters, iterative_tol, iterative_flow_threshold_px: iterative scale.
         max_depth, depth_crop_top: depth used for scale/PnP lies in (0, max_depth] and below the top rows.
@@ -58,6 +63,7 @@ class TrackerConfig:
     gric_sigma: float = 0.8
     flow_magnitude_threshold: float = 5.0
     scale_method: str = "simple"
+    scale_depth_views: int = 1
     scale_min_points: int = 10
     scale_ransac_trials: int = 100
     scale_ransac_samples: int = 3

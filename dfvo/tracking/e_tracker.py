@@ -17,7 +17,7 @@ from dfvo.geometry.gric import gric_essential, gric_homography
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, find_homography_ransac
 from dfvo.tracking.config import TrackerConfig
 from dfvo.tracking.model_selection import prefer_pnp_flow, prefer_pnp_gric
-from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depth
+from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depths
 
 __all__ = ["ETrackerResult", "track_essential", "essential_scale"]
 
@@ -87,15 +87,30 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
 
 def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor,
                     depth_i: torch.Tensor, K: torch.Tensor, cfg: TrackerConfig,
-                    generators: list[torch.Generator] | None) -> tuple[torch.Tensor, torch.Tensor]:
+                    generators: list[torch.Generator] | None,
+                    depth_j: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Simple scale (1-D RANSAC on CNN / triangulated depth ratios) of unit ``T_cur_prev`` motions.
+
+    ``depth_i`` (B,1,H,W) is the CNN depth of the earlier frame. With ``depth_j`` (the later frame's, given when
+    ``cfg.scale_depth_views == 2``) a second scale comes from the ratios in camera j at ``pts_j``, and the result
+    is the geometric mean of the two (the one that succeeded when only one did).
 
     Returns:
         scale (B,) float64 and success (B,) bool (needs more than ``scale_min_points`` usable rows).
     """
-    z_cnn, ok = sample_depth(depth_i, pts_i, cfg.max_depth, cfg.depth_crop_top)
-    z_tri, front = triangulated_depth(R, t, K, pts_i, pts_j)
-    s, _, success = simple_scale(z_cnn, z_tri, mask & ok & front, trials=cfg.scale_ransac_trials,
-                                 samples=cfg.scale_ransac_samples, threshold=cfg.scale_inlier_threshold,
-                                 min_points=cfg.scale_min_points, generators=generators)
-    return s, success
+    z_tri_i, z_tri_j, front = triangulated_depths(R, t, K, pts_i, pts_j)
+
+    def one_view(depth: torch.Tensor, pts: torch.Tensor, z_tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        z_cnn, ok = sample_depth(depth, pts, cfg.max_depth, cfg.depth_crop_top)
+        s, _, success = simple_scale(z_cnn, z_tri, mask & ok & front, trials=cfg.scale_ransac_trials,
+                                     samples=cfg.scale_ransac_samples, threshold=cfg.scale_inlier_threshold,
+                                     min_points=cfg.scale_min_points, generators=generators)
+        return s, success
+
+    s_i, ok_i = one_view(depth_i, pts_i, z_tri_i)
+    if depth_j is None:
+        return s_i, ok_i
+    s_j, ok_j = one_view(depth_j, pts_j, z_tri_j)
+    both = ok_i & ok_j
+    s = torch.where(both, (s_i.clamp_min(0) * s_j.clamp_min(0)).sqrt(), torch.where(ok_i, s_i, s_j))
+    return s, ok_i | ok_j

@@ -2,7 +2,8 @@
 
 Convention:
     Pairs are (prev=i, cur=j): ``flow_fwd`` i->j and ``flow_bwd`` j->i (B,2,H,W) in pixels, ``depth`` of frame
-    i (B,1,H,W) in metres, intrinsics ``K`` (B,3,3). Trackers estimate ``T_cur_prev`` (prev points into the
+    i (B,1,H,W) in metres (and ``depth_next`` of frame j, needed when ``scale_depth_views=2``), intrinsics
+    ``K`` (B,3,3). Trackers estimate ``T_cur_prev`` (prev points into the
     current camera); the loop returns ``T_prev_cur = inv(T_cur_prev)`` and accumulates
     ``T_w_cur = T_w_prev @ T_prev_cur`` from ``T_w_0 = I``. Poses are float64.
 
@@ -76,16 +77,18 @@ class VisualOdometry:
 
     # ------------------------------------------------------------------------------------------ public
     def step(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth_prev: torch.Tensor,
-             K: torch.Tensor) -> FrameResult:
-        """Track one new frame: flows (1,2,H,W) prev->cur and cur->prev, depth (1,1,H,W) of prev, K (1,3,3)."""
+             K: torch.Tensor, depth_cur: torch.Tensor | None = None) -> FrameResult:
+        """Track one new frame: flows (1,2,H,W) prev->cur and cur->prev, depth (1,1,H,W) of prev, K (1,3,3);
+        ``depth_cur`` (1,1,H,W) of cur when ``scale_depth_views=2``."""
         KORNIA_CHECK(flow_fwd.shape[0] == 1, f"VisualOdometry.step takes one pair (B=1); got flow_fwd "
                                              f"{tuple(flow_fwd.shape)} (use run for batches)")
-        return self._batch(flow_fwd, flow_bwd, depth_prev, K.reshape(1, 3, 3))[0]
+        return self._batch(flow_fwd, flow_bwd, depth_prev, K.reshape(1, 3, 3), depth_cur)[0]
 
     def run(self, flows_fwd: torch.Tensor, flows_bwd: torch.Tensor, depths: torch.Tensor, K: torch.Tensor,
-            batch_size: int = 8) -> list[FrameResult]:
+            batch_size: int = 8, depths_next: torch.Tensor | None = None) -> list[FrameResult]:
         """Track a whole sequence: (N-1,2,H,W) flows, (N-1,1,H,W) depths of the earlier frame of each pair,
-        K (3,3) or (N-1,3,3). Returns N-1 results (frame 0 is identity), identical to calling :meth:`step`."""
+        K (3,3) or (N-1,3,3); ``depths_next`` (N-1,1,H,W) of the later frame of each pair when
+        ``scale_depth_views=2``. Returns N-1 results (frame 0 is identity), identical to calling :meth:`step`."""
         KORNIA_CHECK_SHAPE(flows_fwd, ["M", "2", "H", "W"])
         M = flows_fwd.shape[0]
         Ks = K.reshape(1, 3, 3).expand(M, 3, 3) if K.dim() == 2 else K
@@ -93,12 +96,13 @@ class VisualOdometry:
         out: list[FrameResult] = []
         for s in range(0, M, max(1, int(batch_size))):
             e = min(M, s + max(1, int(batch_size)))
-            out.extend(self._batch(flows_fwd[s:e], flows_bwd[s:e], depths[s:e], Ks[s:e]))
+            out.extend(self._batch(flows_fwd[s:e], flows_bwd[s:e], depths[s:e], Ks[s:e],
+                                   None if depths_next is None else depths_next[s:e]))
         return out
 
     # ------------------------------------------------------------------------------------------ internals
     def _batch(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth: torch.Tensor,
-               K: torch.Tensor) -> list[FrameResult]:
+               K: torch.Tensor, depth_next: torch.Tensor | None = None) -> list[FrameResult]:
         cfg = self.cfg
         KORNIA_CHECK_SHAPE(flow_fwd, ["B", "2", "H", "W"])
         KORNIA_CHECK_SHAPE(flow_bwd, ["B", "2", "H", "W"])
@@ -109,6 +113,13 @@ class VisualOdometry:
         KORNIA_CHECK(flow_bwd.shape == flow_fwd.shape and same,
                      f"VisualOdometry: flow_fwd {tuple(flow_fwd.shape)}, flow_bwd "
                      f"{tuple(flow_bwd.shape)}, depth {tuple(depth.shape)}, K {tuple(K.shape)} must share B, H, W")
+        if cfg.scale_depth_views == 2:
+            if depth_next is None or depth_next.shape != depth.shape:
+                raise ValueError(f"VisualOdometry: scale_depth_views=2 needs the later frame's depth of each pair "
+                                 f"(run(depths_next=...) / step(depth_cur=...)) shaped like depth "
+                                 f"{tuple(depth.shape)}; got {None if depth_next is None else tuple(depth_next.shape)}")
+        else:
+            depth_next = None  # the paper's one-view scale: a given next depth is not used
         gens = [torch.Generator().manual_seed(cfg.seed + self.frame + b) for b in range(B)]
         t0 = time.perf_counter()
         incon = forward_backward_inconsistency(flow_fwd, flow_bwd)
@@ -122,20 +133,21 @@ class VisualOdometry:
         e_res, scale, scale_ok = None, None, None
         if cfg.tracker != "pnp":
             e_res = track_essential(pi, pj, mask, Kd, cfg, gens)
-            scale, scale_ok = essential_scale(e_res.R, e_res.t, pi, pj, mask, depth, Kd, cfg, gens)
+            scale, scale_ok = essential_scale(e_res.R, e_res.t, pi, pj, mask, depth, Kd, cfg, gens, depth_next)
         t2 = time.perf_counter()
         shared = {"time_selection": (t1 - t0) / B, "time_e_tracker": (t2 - t1) / B}
         results = []
         for b in range(B):
             tb = time.perf_counter()
-            res = self._finish_frame(b, corr, pi, pj, mask, depth, Kd, e_res, scale, scale_ok, gens[b])
+            res = self._finish_frame(b, corr, pi, pj, mask, depth, depth_next, Kd, e_res, scale, scale_ok, gens[b])
             res.diagnostics.update(shared)
             res.diagnostics["time_sequential"] = time.perf_counter() - tb
             results.append(res)
         return results
 
     def _finish_frame(self, b: int, corr: Any, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor,
-                      depth: torch.Tensor, K: torch.Tensor, e_res: Any, scale: torch.Tensor | None,
+                      depth: torch.Tensor, depth_next: torch.Tensor | None, K: torch.Tensor, e_res: Any,
+                      scale: torch.Tensor | None,
                       scale_ok: torch.Tensor | None, gen: torch.Generator) -> FrameResult:
         cfg = self.cfg
         sl = slice(b, b + 1)
@@ -154,7 +166,8 @@ class VisualOdometry:
         else:
             reason = e_res.reasons[b]
             if reason is None:
-                T_j_i, reason = self._essential_pose(b, pi, pj, mask, depth, K, e_res, scale, scale_ok, gen, diag)
+                T_j_i, reason = self._essential_pose(b, pi, pj, mask, depth, depth_next, K, e_res, scale, scale_ok,
+                                                     gen, diag)
             if T_j_i is None:
                 diag["fallback_reason"] = reason
                 if cfg.tracker == "hybrid":
@@ -171,8 +184,9 @@ class VisualOdometry:
         return FrameResult(self.T_w.clone(), T_prev_cur, diag)
 
     def _essential_pose(self, b: int, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
-                        K: torch.Tensor, e_res: Any, scale: torch.Tensor, scale_ok: torch.Tensor,
-                        gen: torch.Generator, diag: dict[str, Any]) -> tuple[torch.Tensor | None, str | None]:
+                        depth_next: torch.Tensor | None, K: torch.Tensor, e_res: Any, scale: torch.Tensor,
+                        scale_ok: torch.Tensor, gen: torch.Generator,
+                        diag: dict[str, Any]) -> tuple[torch.Tensor | None, str | None]:
         cfg = self.cfg
         sl = slice(b, b + 1)
         R, t = e_res.R[sl], e_res.t[sl]
@@ -187,7 +201,8 @@ class VisualOdometry:
                 r = find_essential_ransac(pi[sl], pj[sl], rows, K[sl], threshold_px=cfg.e_threshold_px,
                                           iterations=cfg.e_iterations, repeats=cfg.ransac_repeats, generators=[gen])
                 R2, t2, _ = decompose_essential(r.model, K[sl], pi[sl], pj[sl], rows)
-                s2, ok2 = essential_scale(R2, t2, pi[sl], pj[sl], rows, depth[sl], K[sl], cfg, [gen])
+                s2, ok2 = essential_scale(R2, t2, pi[sl], pj[sl], rows, depth[sl], K[sl], cfg, [gen],
+                                          None if depth_next is None else depth_next[sl])
                 return R2, t2, s2, ok2 & r.success
 
             R0, t0, s0 = R, t, 0.0

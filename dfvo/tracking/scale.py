@@ -16,7 +16,7 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.two_view import frame_rand, normalise_points, ray_depths
 
-__all__ = ["sample_depth", "triangulated_depth", "simple_scale", "iterative_scale"]
+__all__ = ["sample_depth", "triangulated_depth", "triangulated_depths", "simple_scale", "iterative_scale"]
 
 
 def sample_depth(depth: torch.Tensor, pts: torch.Tensor, max_depth: float = 50.0,
@@ -35,14 +35,23 @@ def sample_depth(depth: torch.Tensor, pts: torch.Tensor, max_depth: float = 50.0
     return z, inside & (z > 0) & (z <= max_depth) & torch.isfinite(z)
 
 
+def triangulated_depths(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor,
+                        pts_j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Depths in camera i and in camera j (B,N each, float64) of pixel pairs triangulated with
+    ``T_j_i = [R | t]`` (unit t; both depths scale with the length of t), and (B,N) bool "in front of both
+    cameras"."""
+    Kd = K.to(torch.float64)
+    xi, xj = normalise_points(pts_i.to(torch.float64), Kd), normalise_points(pts_j.to(torch.float64), Kd)
+    z_i, z_j = ray_depths(R.to(torch.float64)[:, None], t.to(torch.float64)[:, None], xi, xj)
+    return z_i[:, 0], z_j[:, 0], (z_i[:, 0] > 0) & (z_j[:, 0] > 0)
+
+
 def triangulated_depth(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor,
                        pts_j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Depth in camera i (B,N) of pixel pairs triangulated with ``T_j_i = [R | t]`` (unit t), and (B,N) bool
     "in front of both cameras"."""
-    Kd = K.to(torch.float64)
-    xi, xj = normalise_points(pts_i.to(torch.float64), Kd), normalise_points(pts_j.to(torch.float64), Kd)
-    z_i, z_j = ray_depths(R.to(torch.float64)[:, None], t.to(torch.float64)[:, None], xi, xj)
-    return z_i[:, 0], (z_i[:, 0] > 0) & (z_j[:, 0] > 0)
+    z_i, _, front = triangulated_depths(R, t, K, pts_i, pts_j)
+    return z_i, front
 
 
 def simple_scale(z_cnn: torch.Tensor, z_tri: torch.Tensor, mask: torch.Tensor, trials: int = 100,
