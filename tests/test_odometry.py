@@ -152,6 +152,20 @@ def test_two_view_scale_cancels_opposite_depth_scale_errors(drive):
         assert torch.allclose(a.T_w_cur, b.T_w_cur, atol=1e-9)
 
 
+def test_two_view_scale_keeps_the_earlier_view_when_the_views_disagree(drive):
+    """The later depth half of the truth (its scale 2x off, beyond scale_views_max_ratio=1.5): not averaged, the
+    earlier frame's exact scale is used."""
+    w, ff, fb, d = drive
+    n = 2
+    d_next = torch.stack([w.render(k + 1)["depth"] for k in range(n)])
+    res = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2)).run(
+        ff[:n], fb[:n], d[:n], w.intrinsics(), batch_size=n, depths_next=d_next / 2)
+    assert all(r.diagnostics["tracker"] == "E" for r in res)
+    assert rpe(w.poses(), res).max() < 1e-3
+    with pytest.raises(ValueError, match="scale_views_max_ratio"):
+        TrackerConfig(scale_views_max_ratio=1.0)
+
+
 def test_two_view_scale_needs_the_later_depth(drive):
     w, ff, fb, d = drive
     with pytest.raises(ValueError, match="scale_depth_views=2"):

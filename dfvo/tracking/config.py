@@ -37,6 +37,8 @@ class TrackerConfig:
             depth of the later frame j (its own 1-D RANSAC on depth ratios in camera j) and the two scales are
             combined by their geometric mean (one alone when the other fails). Our addition: per-frame errors of
             the CNN depth's scale are nearly independent from frame to frame, so two views halve their variance.
+        scale_views_max_ratio: with two views, scales that differ by more than this factor are not averaged
+            (one view is broken, e.g. a close object in only one frame); the earlier frame's scale is used.
         scale_min_points, scale_ransac_trials, scale_ransac_samples, scale_inlier_threshold: simple scale.
         iterative_max_iters, iterative_tol, iterative_flow_threshold_px: iterative scale.
         max_depth, depth_crop_top: depth used for scale/PnP lies in (0, max_depth] and below the top rows.
@@ -64,6 +66,7 @@ class TrackerConfig:
     flow_magnitude_threshold: float = 5.0
     scale_method: str = "simple"
     scale_depth_views: int = 1
+    scale_views_max_ratio: float = 1.5
     scale_min_points: int = 10
     scale_ransac_trials: int = 100
     scale_ransac_samples: int = 3
@@ -91,6 +94,8 @@ class TrackerConfig:
                      "scale_inlier_threshold"):
             if float(getattr(self, name)) <= 0:
                 raise ValueError(f"TrackerConfig.{name}={getattr(self, name)}; expected > 0")
+        if not float(self.scale_views_max_ratio) > 1.0:
+            raise ValueError(f"TrackerConfig.scale_views_max_ratio={self.scale_views_max_ratio}; expected > 1")
         if not 0.0 <= self.depth_crop_top < 1.0 or not 0.0 <= self.selection_crop_top < 1.0:
             raise ValueError(f"TrackerConfig: depth_crop_top={self.depth_crop_top}, selection_crop_top="
                              f"{self.selection_crop_top}; expected fractions in [0, 1)")

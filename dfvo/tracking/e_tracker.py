@@ -9,6 +9,7 @@ Convention:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -93,7 +94,8 @@ def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j
 
     ``depth_i`` (B,1,H,W) is the CNN depth of the earlier frame. With ``depth_j`` (the later frame's, given when
     ``cfg.scale_depth_views == 2``) a second scale comes from the ratios in camera j at ``pts_j``, and the result
-    is the geometric mean of the two (the one that succeeded when only one did).
+    is the geometric mean of the two when they agree within ``cfg.scale_views_max_ratio`` (else the earlier
+    frame's scale, as in the paper; the one that succeeded when only one did).
 
     Returns:
         scale (B,) float64 and success (B,) bool (needs more than ``scale_min_points`` usable rows).
@@ -111,6 +113,7 @@ def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j
     if depth_j is None:
         return s_i, ok_i
     s_j, ok_j = one_view(depth_j, pts_j, z_tri_j)
-    both = ok_i & ok_j
+    agree = (s_i.clamp_min(1e-12) / s_j.clamp_min(1e-12)).log().abs() <= math.log(cfg.scale_views_max_ratio)
+    both = ok_i & ok_j & agree
     s = torch.where(both, (s_i.clamp_min(0) * s_j.clamp_min(0)).sqrt(), torch.where(ok_i, s_i, s_j))
     return s, ok_i | ok_j
