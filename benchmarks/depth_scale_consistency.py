@@ -6,10 +6,11 @@ flow. Here the triangulation uses the TRUE relative pose of every pair (KITTI gr
 ``z_cnn / z_true`` isolates the depth network: per frame its median over the correspondences the tracker would use
 (shipped flow network + photometric refinement + local best-K at 0.1 px, rows below the top 30 %, CNN depth in
 (0, 50] m), then over frames the mean (metric bias) and standard deviation (per-frame scale noise; a 10 % spread is
-~0.12 m of RPE at KITTI speed); ``gross_error_fraction``: the share of those points whose CNN depth is off by more
-than a factor 2 (what makes the tracker's 1-D RANSAC lock onto a wrong scale). ``parallax_3px`` repeats the
-statistics on the points with more than 3 px of flow (their triangulation is well conditioned, so the ratio there
-is the network's alone), with the mean ratio per true-depth band.
+~0.12 m of RPE at KITTI speed); ``gross_error_fraction``: per frame the share of those points whose CNN depth is
+off by more than a factor 2, averaged over frames (what makes the tracker's 1-D RANSAC lock onto a wrong scale;
+low-parallax points add triangulation noise to it). ``parallax_3px`` repeats the statistics on the points with
+more than 3 px of flow (their triangulation is well conditioned, so the ratio there is the network's alone),
+with the mean ratio per true-depth band.
 
     python benchmarks/depth_scale_consistency.py --depth checkpoints/depth.safetensors
 

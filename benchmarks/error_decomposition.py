@@ -7,7 +7,8 @@ lengths is the scale error itself. Prints one JSON object:
 
     - ``as_run``: RPE (m, deg) and ATE (m) of the prediction (``--align``, 6-DoF by default);
     - ``true_lengths``: the same with every relative translation rescaled to the true length;
-    - ``length_ratio``: mean, median and standard deviation of |t_pred| / |t_true| over frames;
+    - ``length_ratio``: mean, median and standard deviation of |t_pred| / |t_true| over frames, and its lag-1
+      autocorrelation (near 0: the scale errors of consecutive frames are independent);
     - ``direction_error_deg``: median, mean and max angle between predicted and true translation directions.
 
     python benchmarks/error_decomposition.py --gt ../shared/data/kitti_odom/poses/06.txt --pred OUT/06.txt
@@ -65,7 +66,9 @@ def main() -> None:
         "gt": args.gt, "pred": args.pred, "align": args.align, "frames": len(gt),
         "as_run": summary(pred), "true_lengths": summary(compose(fixed)),
         "length_ratio": {"mean": round(float(ratio.mean()), 4), "median": round(float(np.median(ratio)), 4),
-                         "std": round(float(ratio.std()), 4)},
+                         "std": round(float(ratio.std()), 4),
+                         "lag1_autocorrelation": (round(float(np.corrcoef(ratio[:-1], ratio[1:])[0, 1]), 4)
+                                                  if len(ratio) > 2 else None)},
         "direction_error_deg": {"median": round(float(np.median(angle)), 3), "mean": round(float(angle.mean()), 3),
                                 "max": round(float(angle.max()), 3)},
     }))

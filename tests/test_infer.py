@@ -220,9 +220,9 @@ def test_network_flow_roundtrip_matches_model(tmp_path: Path) -> None:
 @needs_stack
 def test_two_view_scale_gets_each_pairs_later_depth_across_batches(tmp_path: Path) -> None:
     """scale.scale_depth_views=2: the loop hands the tracker frame i+1's depth for pair (i, i+1), carried over
-    batch boundaries (9 frames, batches of 2 pairs); with the true depth any off-by-one frame would bias the
-    geometric mean of the two scales and the RPE of the E-tracker's frames."""
-    n = 9
+    batch boundaries and into a last partial batch (10 frames, batches of 2 pairs); with the true depth any
+    off-by-one frame would bias the geometric mean of the two scales and the RPE of the E-tracker's frames."""
+    n = 10
     run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "batch_size=2", "scale.scale_depth_views=2",
               *SMALL, *ORACLE)
     gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()

@@ -166,6 +166,21 @@ def test_two_view_scale_keeps_the_earlier_view_when_the_views_disagree(drive):
         TrackerConfig(scale_views_max_ratio=1.0)
 
 
+def test_two_view_scale_uses_the_later_view_alone_when_the_earlier_fails(drive):
+    """No usable depth in frame i (all zero): the one-view scale fails (tracker=e falls back to constant motion);
+    with two views the later frame's true depth alone gives the exact translation."""
+    w, ff, fb, d = drive
+    n = 2
+    d_next = torch.stack([w.render(k + 1)["depth"] for k in range(n)])
+    zero = torch.zeros_like(d[:n])
+    one = VisualOdometry(TrackerConfig(tracker="e")).run(ff[:n], fb[:n], zero, w.intrinsics(), batch_size=n)
+    assert all(r.diagnostics["tracker"] == "constant_motion" for r in one)
+    two = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2)).run(
+        ff[:n], fb[:n], zero, w.intrinsics(), batch_size=n, depths_next=d_next)
+    assert all(r.diagnostics["tracker"] == "E" for r in two)
+    assert rpe(w.poses(), two).max() < 1e-3
+
+
 def test_two_view_scale_needs_the_later_depth(drive):
     w, ff, fb, d = drive
     with pytest.raises(ValueError, match="scale_depth_views=2"):

@@ -78,6 +78,12 @@ def test_iterative_scale_beats_simple_on_a_moving_car():
         errs[method] = float((res.T_prev_cur[:3, 3] - T_true[:3, 3]).norm())
     assert errs["iterative"] < 1e-3
     assert errs["simple"] > 10 * errs["iterative"], errs
+    # the two-view scale (later frame's depth too) inside Algorithm 2's re-estimation keeps the truck rejected
+    vo = VisualOdometry(TrackerConfig(scale_method="iterative", tracker="e", scale_depth_views=2))
+    vo.last_motion, vo.last_scale = T_before, float(T_before[:3, 3].norm())
+    res = vo.step(r["flow_fwd"][None], r["flow_bwd"][None], r["depth"][None], w.intrinsics()[None],
+                  depth_cur=w.render(k + 1)["depth"][None])
+    assert float((res.T_prev_cur[:3, 3] - T_true[:3, 3]).norm()) < 1e-3
 
 
 def test_config_rejects_bad_values():

@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from kornia.core.check import KORNIA_CHECK_SHAPE
+from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from torch import nn
 
 from dfvo.models.depth_net import DepthNet
@@ -205,6 +205,10 @@ def blend_flipped_inverse_depth(inv_depth: torch.Tensor, inv_depth_of_mirror: to
     ``2 * border`` of the width; symmetrically at the right border (monodepth's post-processing).
     """
     KORNIA_CHECK_SHAPE(inv_depth, ["B", "1", "H", "W"])
+    KORNIA_CHECK(inv_depth_of_mirror.shape == inv_depth.shape,
+                 f"blend_flipped_inverse_depth: shapes {tuple(inv_depth.shape)} and "
+                 f"{tuple(inv_depth_of_mirror.shape)} differ")
+    KORNIA_CHECK(0.0 < border <= 0.25, f"blend_flipped_inverse_depth: border={border}; expected (0, 0.25]")
     w = inv_depth.shape[-1]
     u = torch.linspace(0.0, 1.0, w, dtype=inv_depth.dtype, device=inv_depth.device)
     near_left = (1.0 - ((u - border) / border).clamp(0.0, 1.0)).view(1, 1, 1, w)

@@ -113,7 +113,7 @@ class VisualOdometry:
         KORNIA_CHECK(flow_bwd.shape == flow_fwd.shape and same,
                      f"VisualOdometry: flow_fwd {tuple(flow_fwd.shape)}, flow_bwd "
                      f"{tuple(flow_bwd.shape)}, depth {tuple(depth.shape)}, K {tuple(K.shape)} must share B, H, W")
-        if cfg.scale_depth_views == 2:
+        if cfg.scale_depth_views == 2 and cfg.tracker != "pnp":  # PnP uses the earlier frame's depth only
             if depth_next is None or depth_next.shape != depth.shape:
                 raise ValueError(f"VisualOdometry: scale_depth_views=2 needs the later frame's depth of each pair "
                                  f"(run(depths_next=...) / step(depth_cur=...)) shaped like depth "
