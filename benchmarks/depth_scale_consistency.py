@@ -42,10 +42,10 @@ BANDS = ((0.0, 8.0), (8.0, 15.0), (15.0, 25.0), (25.0, 50.0))
 def main() -> None:
     repo = Path(__file__).resolve().parents[1]
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--depth", default=str(repo / "checkpoints/depth.safetensors"))
+    p.add_argument("--depth", default=str(repo / "dfvo/checkpoints/depth.safetensors"))
     p.add_argument("--depth-input-size", default=None, help="H,W the depth network runs at (default: metadata)")
     p.add_argument("--flip-average", action="store_true", help="depth.flip_average: blend with the mirrored image")
-    p.add_argument("--flow", default=str(repo / "checkpoints/flow.safetensors"))
+    p.add_argument("--flow", default=str(repo / "dfvo/checkpoints/flow.safetensors"))
     p.add_argument("--root", default=str(repo.parent / "shared/data/kitti_odom"))
     p.add_argument("--seq", default="06")
     p.add_argument("--height", type=int, default=192)

@@ -65,7 +65,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        ov = [f"dataset@data={args.data}", f"img_res.height={args.height}", f"img_res.width={args.width}",
+        ov = [f"data={args.data}", f"img_res.height={args.height}", f"img_res.width={args.width}",
               f"out_dir={tmp / 'out'}", "progress=false", f"batch_size={args.batch_size}",
               f"num_threads={args.threads}"]
         if args.data == "synthetic":
@@ -81,7 +81,7 @@ def main() -> None:
                            else _random_checkpoints(tmp, args.flow_variant))
             ov += ["flow=network", "depth=network", f"flow.checkpoint={flow}", f"depth.checkpoint={depth}",
                    f"depth.depth_scale={args.depth_scale}"]
-        with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "infer"), version_base="1.3"):
             cfg = compose("infer", overrides=ov + list(args.overrides))
         summary = run_inference(cfg)
     timing = summary["timing_ms_per_frame"]

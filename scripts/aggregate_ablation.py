@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-GROUPS = ("data", "dataset@data", "tracker", "correspondence", "scale", "model_selection", "img_res", "flow", "depth")
+GROUPS = ("data", "tracker", "correspondence", "scale", "model_selection", "img_res", "flow", "depth")
 
 
 def load_runs(folders: list[Path]) -> list[dict[str, Any]]:

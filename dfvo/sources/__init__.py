@@ -26,14 +26,15 @@ __all__ = ["find_checkpoint", "resolve_source", "check_sources", "CheckpointErro
 
 
 def find_checkpoint(path: str | Path | None) -> Path:
-    """A relative checkpoint path is looked up in the working directory, then in the project root (where the
-    shipped ``checkpoints/`` live); the working-directory path is returned when neither exists."""
+    """A relative checkpoint path is looked up in the working directory, then in the installed package (where the
+    shipped ``checkpoints/`` live: ``checkpoints/flow.safetensors`` is ``dfvo/checkpoints/flow.safetensors``); the
+    working-directory path is returned when neither exists."""
     if not path:
         raise CheckpointError("no checkpoint given: set flow.checkpoint= / depth.checkpoint= to a weights file")
     p = Path(path)
     if p.is_absolute() or p.exists():
         return p
-    shipped = Path(__file__).resolve().parents[2] / p
+    shipped = Path(__file__).resolve().parents[1] / p
     return shipped if shipped.exists() else p
 
 

@@ -112,7 +112,7 @@ def test_online_finetuning_adapts_then_stops() -> None:
     assert tuner.active and OnlineFlowConfig().lr == 1e-5 and OnlineFlowConfig().max_frames == 200
 
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _train(tmp_path: Path, *overrides: str) -> Path:
@@ -165,7 +165,7 @@ def test_supervised_flow_on_data_without_true_flow_fails_at_setup(tmp_path: Path
     from hydra import compose, initialize_config_dir
 
     from dfvo.training.runner import run_training
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "train"), version_base="1.3"):
         cfg = compose("train", overrides=["model=flow_supervised", f"data={data}", f"runs_dir={tmp_path}", "name=x"])
     with pytest.raises(ValueError, match=rf"model=flow_supervised .*data={data}.*data=synthetic.*model=flow_self"):
         run_training(cfg)

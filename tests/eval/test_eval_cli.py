@@ -13,7 +13,7 @@ import pytest
 from dfvo.eval import evaluate_sequences, evaluate_trajectory, plot_segment_errors, plot_trajectory, write_kitti_poses
 from dfvo.evaluate import parse_args
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _line(n: int, step: float) -> np.ndarray:

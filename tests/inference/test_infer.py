@@ -30,7 +30,7 @@ from dfvo.sources import (
     resolve_source,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 H, W = 96, 320  # low resolution keeps each run a few seconds
 SMALL = [f"img_res.height={H}", f"img_res.width={W}", "progress=false", "num_threads=1"]
 ORACLE = ["flow=oracle", "depth=oracle"]  # the default (auto) uses the shipped checkpoints
@@ -251,18 +251,10 @@ def test_oracle_sources_return_world_truth_and_refuse_real_data() -> None:
         OracleDepth(world)(img, [0])
 
 
-def test_data_override_rewrite() -> None:
-    sys.path.insert(0, str(REPO))
-    from infer import _rewrite_data_override
-
-    assert _rewrite_data_override(["data=kitti_odom", "data.root=/x", "seq=06", "-m"]) == [
-        "dataset@data=kitti_odom", "data.root=/x", "seq=06", "-m"]
-
-
 def test_kitti_odom_command_reads_sequence_and_refuses_oracle(kitti_odom_root: Path, tmp_path: Path) -> None:
     from dfvo.inference.frames import build_sequence
 
-    data = OmegaConf.load(REPO / "conf/dataset/kitti_odom.yaml")
+    data = OmegaConf.load(REPO / "dfvo/conf/infer/data/kitti_odom.yaml")
     data.root = str(kitti_odom_root)
     seq = build_sequence(data, "06", OmegaConf.create({"height": 192, "width": 640}))
     assert seq.name == "06" and seq.length == 51 and seq.poses.shape == (51, 4, 4)
@@ -333,7 +325,7 @@ def test_aggregate_table_shows_varying_overrides(tmp_path: Path) -> None:
 
 def _needs_shipped_checkpoints() -> None:
     for ckpt in ("checkpoints/flow.safetensors", "checkpoints/depth.safetensors"):
-        if not (REPO / ckpt).exists():
+        if not (REPO / "dfvo" / ckpt).exists():
             pytest.skip(f"needs the shipped {ckpt}")
 
 
@@ -376,7 +368,7 @@ def test_folder_and_kitti_raw_sequences(tmp_path: Path, kitti_raw_root: Path) ->
 
     for k in range(3):
         Image.fromarray(np.full((40, 80, 3), 60 * k, np.uint8)).save(tmp_path / f"f{k}.png")
-    data = OmegaConf.load(REPO / "conf/dataset/folder.yaml")
+    data = OmegaConf.load(REPO / "dfvo/conf/infer/data/folder.yaml")
     data.root, data.fx, data.fy, data.cx, data.cy, data.start = str(tmp_path), 100.0, 100.0, 39.5, 19.5, 1
     seq = build_sequence(data, None, OmegaConf.create({"height": 20, "width": 40}))
     assert seq.length == 2 and seq.poses is None and seq.world is None
@@ -384,7 +376,7 @@ def test_folder_and_kitti_raw_sequences(tmp_path: Path, kitti_raw_root: Path) ->
     torch.testing.assert_close(seq.K, torch.tensor([[50.0, 0, 19.5], [0, 50.0, 9.5], [0, 0, 1]]))
     with pytest.raises(ValueError, match="data.fx"):
         build_sequence(OmegaConf.merge(data, {"fx": None}), None, OmegaConf.create({"height": 20, "width": 40}))
-    raw = OmegaConf.load(REPO / "conf/dataset/kitti_raw.yaml")
+    raw = OmegaConf.load(REPO / "dfvo/conf/infer/data/kitti_raw.yaml")
     raw.root, raw.end = str(kitti_raw_root.parent), 5
     seq = build_sequence(raw, "2011_09_26_drive_0001", OmegaConf.create({"height": 192, "width": 640}))
     assert seq.name == "2011_09_26_drive_0001_sync" and seq.length == 5 and seq.image(4).shape == (3, 192, 640)
@@ -508,7 +500,7 @@ def test_aggregate_out_creates_missing_folders(tmp_path: Path) -> None:
 
 
 @needs_stack
-@pytest.mark.skipif(not (REPO / "checkpoints" / "flow.safetensors").is_file(), reason="no shipped checkpoints")
+@pytest.mark.skipif(not (REPO / "dfvo" / "checkpoints" / "flow.safetensors").is_file(), reason="no shipped checkpoints")
 def test_default_run_uses_the_shipped_checkpoints(tmp_path: Path) -> None:
     """``python infer.py`` on a fresh clone runs the shipped networks (at their trained input size) and writes
     one pose per frame."""

@@ -12,7 +12,7 @@ from hydra import compose, initialize_config_dir
 
 from dfvo.training.runner import CKPT_KEY, NaNGuard, run_training
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TINY = ["data.height=64", "data.width=128", "data.batch_size=1", "data.val_num_frames=3",
         "trainer.enable_progress_bar=false", "trainer.log_every_n_steps=1",
         "model.log_images_every=1", "threads=1"]
@@ -23,7 +23,7 @@ SYN = ["data.num_frames=5", "data.seeds=[0]"]
 
 def _cfg(tmp_path: Path, *overrides: str):
     syn = SYN if not any(o.startswith("data=") and o != "data=synthetic" for o in overrides) else []
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "train"), version_base="1.3"):
         return compose("train", overrides=[f"runs_dir={tmp_path}", *TINY, *syn, *overrides])
 
 

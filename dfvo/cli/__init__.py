@@ -1,0 +1,1 @@
+"""Command-line entry points: ``dfvo-infer``, ``dfvo-train``, ``dfvo-eval`` (and ``infer.py``/``train.py``)."""
