@@ -11,7 +11,8 @@ from __future__ import annotations
 import sys
 import warnings
 
-from dfvo.eval.report import evaluate_sequences, format_table, write_json
+from dfvo.eval.report import evaluate_sequences, format_table
+from dfvo.io.json_io import write_json
 
 KEYS = {"gt_dir", "pred_dir", "align", "seqs", "exclude", "out", "plot_dir"}
 DEFAULTS: dict = {"align": "7dof", "seqs": None, "exclude": None, "out": None, "plot_dir": None}

@@ -19,7 +19,7 @@ _EXPORTS = {
                                    "kitti_segment_errors", "relative_pose_error", "rotation_angle",
                                    "trajectory_distances"),
     "dfvo.eval.plots": ("plot_segment_errors", "plot_trajectory"),
-    "dfvo.eval.report": ("evaluate_sequences", "format_table", "write_json"),
+    "dfvo.eval.report": ("evaluate_sequences", "format_table"),
     "dfvo.eval.trajectory_io": ("read_kitti_poses", "read_tum_poses", "write_kitti_poses", "write_tum_poses"),
 }
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}

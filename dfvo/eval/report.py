@@ -8,7 +8,6 @@ Convention:
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -88,11 +87,3 @@ def format_table(result: dict) -> str:
         if r.get("scale_warning"):
             lines.append(f"WARNING {seq}: {r['scale_warning']}")
     return "\n".join(lines)
-
-
-def write_json(path: str | Path, result: dict) -> Path:
-    """Write ``result`` as indented JSON (None -> null)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=2))
-    return path

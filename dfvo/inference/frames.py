@@ -3,7 +3,8 @@
 Convention:
     ``FrameSequence.image(i)`` is (3,H,W) float in [0,1] at the working resolution, ``K`` (3,3) in its pixels,
     ``poses`` (N,4,4) float64 ``T_w_c`` of the left camera when ground truth exists (else None), ``world`` the
-    :class:`~dfvo.data.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it).
+    :class:`~dfvo.data.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it), ``timestamps``
+    (N,) float64 seconds of each frame when the dataset has them (else None).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ class FrameSequence:
     load: Callable[[int], torch.Tensor]
     poses: np.ndarray | None = None
     world: Any = None
+    timestamps: np.ndarray | None = None
 
     def image(self, index: int) -> torch.Tensor:
         """(3,H,W) frame ``index``."""

@@ -10,12 +10,13 @@
 from __future__ import annotations
 
 import csv
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from dfvo.io.json_io import write_json
 
 __all__ = ["PoseWriter", "FramesCsv", "CSV_FIELDS", "write_json", "fallback_summary"]
 
@@ -77,25 +78,6 @@ class FramesCsv:
 
     def close(self) -> None:
         self._f.close()
-
-
-def write_json(path: str | Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON (NaN/inf become null)."""
-
-    def clean(o: Any) -> Any:
-        if isinstance(o, dict):
-            return {str(k): clean(v) for k, v in o.items()}
-        if isinstance(o, list | tuple):
-            return [clean(v) for v in o]
-        if isinstance(o, np.ndarray):
-            return clean(o.tolist())
-        if isinstance(o, np.generic):
-            return clean(o.item())
-        if isinstance(o, float) and not math.isfinite(o):
-            return None
-        return o
-
-    Path(path).write_text(json.dumps(clean(obj), indent=2) + "\n")
 
 
 def fallback_summary(rows: list[dict[str, Any]], threshold: float = 0.2) -> dict[str, Any]:
