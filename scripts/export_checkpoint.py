@@ -6,7 +6,7 @@
         checkpoints/depth.safetensors --height 96 --width 320
 
 Only the network that inference needs is kept (the pose network of a depth run is dropped); tensors are stored in
-float16 (loaded back as float32: :func:`dfvo.sources.networks.load_weights` casts to the model's dtype). The
+float16 (loaded back as float32: :func:`dfvo.io.checkpoint.load_weights` casts to the model's dtype). The
 metadata records the network (``task``, ``variant``), the input size it was trained at (``height``/``width``:
 the inference sources resize to it), its depth range, the source checkpoint and its training step, so a model
 card can be checked against the file. The exported network is loaded back and compared with the float32 original
@@ -25,9 +25,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from dfvo.io.checkpoint import CheckpointError, load_weights  # noqa: E402
 from dfvo.models.depth_net import DepthNet  # noqa: E402
 from dfvo.models.flow_net import FlowNet  # noqa: E402
-from dfvo.sources.networks import VARIANTS, CheckpointError, load_weights  # noqa: E402
+from dfvo.sources.networks import VARIANTS  # noqa: E402
 
 
 def _checkpoint_info(path: Path) -> dict[str, str]:

@@ -9,6 +9,8 @@ Convention:
 
 from __future__ import annotations
 
+import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,9 +19,11 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["FrameSequence", "build_sequence", "DATA_KINDS"]
+__all__ = ["FrameSequence", "build_sequence", "resolve_data", "DATA_ROOT_ENV"]
 
-DATA_KINDS = ("synthetic", "kitti_odom", "kitti_raw", "folder")
+# dataset kind -> environment variable that gives its root once for all commands
+DATA_ROOT_ENV = {"kitti_odom": "DFVO_KITTI_ODOM_ROOT", "kitti_raw": "DFVO_KITTI_RAW_ROOT"}
+KITTI_ODOM_SEQ = re.compile(r"^\d{1,2}$")
 
 
 @dataclass
@@ -39,77 +43,107 @@ class FrameSequence:
         return self.load(index)
 
 
-def _frames_slice(data: Any) -> slice:
-    start, end = data.get("start"), data.get("end")
-    return slice(start, end)
-
-
 def _size(img_res: Any) -> tuple[int | None, int | None]:
-    h, w = img_res.get("height"), img_res.get("width")
+    h, w = img_res.height, img_res.width
     if (h is None) != (w is None):
         raise ValueError(f"img_res: give both height and width or neither, got height={h}, width={w}")
     return h, w
 
 
-def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSequence:
-    """Open sequence ``seq`` of the dataset described by the ``data`` config group.
+def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
+    """The dataset config and sequence name a run uses.
+
+    ``seq`` overrides ``data.seq``. A KITTI odometry sequence number (``seq=10``) with the default synthetic data
+    selects KITTI odometry (the synthetic world's sequences are scenario names), with its root from
+    ``DFVO_KITTI_ODOM_ROOT``. A missing ``data.root`` is taken from the kind's environment variable
+    (:data:`DATA_ROOT_ENV`).
 
     Args:
-        data: ``kind`` in :data:`DATA_KINDS` plus its fields (``root``, synthetic ``seed``/``num_frames``/...,
-            folder intrinsics, optional ``start``/``end`` frame range).
-        seq: sequence name (KITTI odometry ``"06"``, a raw drive name, a synthetic scenario); None: the
-            dataset's default ``data.seq``.
-        img_res: ``height``/``width`` working size (both None: native size).
+        data: a typed data config (:mod:`dfvo.inference.config`).
+        seq: the command line's ``seq`` (None: ``data.seq``).
+
+    Returns:
+        (data config, sequence name or None).
 
     Raises:
-        ValueError: unknown ``data.kind``, missing ``data.root``, bad sizes; dataset errors name the path.
+        ValueError: a dataset that needs a root has neither ``data.root`` nor its environment variable (one line
+            saying how to set it).
     """
-    kind = data.get("kind")
-    if kind not in DATA_KINDS:
-        raise ValueError(f"data.kind={kind!r}; expected one of {DATA_KINDS} (conf/dataset/*.yaml)")
-    seq = data.get("seq") if seq is None else seq
+    from dfvo.inference.config import KittiOdomDataConfig
+
+    name = None if seq is None else str(seq)
+    if data.kind == "synthetic" and name is not None and KITTI_ODOM_SEQ.match(name):
+        data = KittiOdomDataConfig(start=data.start, end=data.end)
+    name = name if name is not None else data.seq
+    if data.kind == "kitti_odom" and name is not None and name.isdigit():
+        name = name.zfill(2)
+    env = DATA_ROOT_ENV.get(data.kind)
+    if getattr(data, "root", "") is None:
+        root = os.environ.get(env) if env else None
+        if not root:
+            how = f"set the environment variable {env}=ROOT once or pass data.root=ROOT" if env else \
+                "pass data.root=FOLDER"
+            what = f"KITTI odometry sequence {name}" if data.kind == "kitti_odom" and name else f"data={data.kind}"
+            raise ValueError(f"{what} needs the dataset folder: {how}")
+        data.root = root
+    return data, name
+
+
+def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSequence:
+    """Open the sequence described by a typed data config (:data:`dfvo.inference.config.DATA_SCHEMAS`).
+
+    Args:
+        data: the ``data`` node (typed), ``seq`` the command line's sequence (see :func:`resolve_data`),
+            ``img_res`` the working size (``height``/``width``, both None: native size).
+
+    Raises:
+        ValueError: unknown ``data.kind``, missing root, bad sizes; dataset errors name the path.
+    """
+    from dfvo.inference.config import DATA_SCHEMAS
+
+    if data.kind not in DATA_SCHEMAS:
+        raise ValueError(f"data.kind={data.kind!r}; expected one of {tuple(DATA_SCHEMAS)}")
+    data, name = resolve_data(data, seq)
     h, w = _size(img_res)
-    sel = _frames_slice(data)
-    if kind == "synthetic":
-        return _synthetic(data, seq, h, w, sel)
-    root = data.get("root")
-    if not root:
-        raise ValueError(f"data={kind} needs data.root=PATH (the dataset folder)")
-    if kind == "kitti_odom":
+    sel = slice(data.start, data.end)
+    if data.kind == "synthetic":
+        return _synthetic(data, name, h, w, sel)
+    if data.kind == "kitti_odom":
         from dfvo.data.kitti_odometry import KittiOdometry
-        if seq is None:
+        if name is None:
             raise ValueError("data=kitti_odom needs seq=NN (e.g. seq=06)")
-        ds = KittiOdometry(root, str(seq), height=h, width=w, camera=data.get("camera", "auto"), frames=sel,
-                           stereo=False)
-        return FrameSequence(ds.sequence, len(ds), ds.intrinsics.float(), lambda i: ds[i]["image"], ds.poses)
-    if kind == "kitti_raw":
-        return _kitti_raw(root, seq, h, w, sel)
+        ds = KittiOdometry(data.root, name, height=h, width=w, camera=data.camera, frames=sel, stereo=False)
+        return FrameSequence(ds.sequence, len(ds), ds.intrinsics.float(), lambda i: ds[i]["image"], ds.poses,
+                             timestamps=ds.timestamps)
+    if data.kind == "kitti_raw":
+        return _kitti_raw(data.root, name, h, w, sel)
+    return _folder(data, name, h, w, sel)
+
+
+def _folder(data: Any, name: str | None, h: int | None, w: int | None, sel: slice) -> FrameSequence:
     from dfvo.data.image_folder import ImageFolder
     for key in ("fx", "fy", "cx", "cy"):
-        if data.get(key) is None:
+        if getattr(data, key) is None:
             raise ValueError(f"data=folder needs data.{key}= (intrinsics in pixels of the stored images)")
-    ds = ImageFolder(root, data.fx, data.fy, data.cx, data.cy, dist=data.get("dist"), height=h, width=w)
+    ds = ImageFolder(data.root, data.fx, data.fy, data.cx, data.cy, dist=data.dist, height=h, width=w)
     ids = list(range(len(ds)))[sel]
-    name = str(seq) if seq is not None else Path(root).name
-    return FrameSequence(name, len(ids), ds.intrinsics.float(), lambda i: ds[ids[i]]["image"])
+    return FrameSequence(name or Path(data.root).name, len(ids), ds.intrinsics.float(), lambda i: ds[ids[i]]["image"])
 
 
-def _synthetic(data: Any, seq: Any, h: int | None, w: int | None, sel: slice) -> FrameSequence:
+def _synthetic(data: Any, scenario: str | None, h: int | None, w: int | None, sel: slice) -> FrameSequence:
     from dfvo.data.synthetic import KITTI_HW, SyntheticWorld
-    scenario = str(seq) if seq is not None else "drive"
+    scenario = scenario or "drive"
     h, w = (h, w) if h is not None else KITTI_HW
-    world = SyntheticWorld(seed=int(data.get("seed", 0)), num_frames=int(data.get("num_frames", 100)), height=h,
-                           width=w, exposure_change=bool(data.get("exposure_change", False)),
-                           noise_std=float(data.get("noise_std", 0.0)), scenario=scenario)
+    world = SyntheticWorld(seed=data.seed, num_frames=data.num_frames, height=h, width=w,
+                           exposure_change=data.exposure_change, noise_std=data.noise_std, scenario=scenario)
     ids = list(range(len(world)))[sel]
     if len(ids) < 2:
-        raise ValueError(f"data=synthetic: frames {sel} select {len(ids)} frames; expected at least 2")
-    if ids != list(range(ids[0], ids[0] + len(ids))):
-        raise ValueError("data=synthetic: the frame range must be contiguous (no step)")
+        raise ValueError(f"data=synthetic: frames {sel.start}..{sel.stop} select {len(ids)} frames; expected at "
+                         "least 2")
     poses = world.poses().numpy()[ids]
-    seq_view = _OffsetWorld(world, ids[0])
     name = f"synthetic_{scenario}_s{world.seed}"
-    return FrameSequence(name, len(ids), world.intrinsics().float(), lambda i: world.image(ids[i]), poses, seq_view)
+    return FrameSequence(name, len(ids), world.intrinsics().float(), lambda i: world.image(ids[i]), poses,
+                         _OffsetWorld(world, ids[0]))
 
 
 class _OffsetWorld:
@@ -125,9 +159,9 @@ class _OffsetWorld:
         return self.world.depth(i + self.offset)
 
 
-def _kitti_raw(root: str, seq: Any, h: int | None, w: int | None, sel: slice) -> FrameSequence:
+def _kitti_raw(root: str, seq: str | None, h: int | None, w: int | None, sel: slice) -> FrameSequence:
     from dfvo.data.kitti_raw import KittiRawSnippets
-    drives = [str(seq)] if seq is not None else None
+    drives = [seq] if seq is not None else None
     ds = KittiRawSnippets(root, h, w, drives=drives, stereo=True, temporal=False)
     if len(ds.drives) != 1:
         names = [d.dir.name for d in ds.drives]

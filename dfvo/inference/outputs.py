@@ -1,27 +1,52 @@
-"""Files an inference run writes, each as frames are produced (an interrupted run leaves valid prefixes).
+"""Files an inference run writes as frames are produced (an interrupted run leaves valid prefixes).
 
-- ``SEQ.txt``: KITTI pose format, one line per input frame (row-major top 3x4 of ``T_w_c``), flushed per line.
-- ``frames.csv``: one row per frame (frame 0 is the reference, tracker ``init``): tracker used, correspondences,
-  inliers, GRIC scores, scale, fallback reason, per-stage seconds.
-- ``metrics.json`` (through :func:`dfvo.eval.evaluate_trajectory`) and ``trajectory.png``
-  (:func:`dfvo.eval.plot_trajectory`) at the end.
+- ``SEQ.txt``: the trajectory, one line per input frame, flushed per line (KITTI or TUM format).
+- ``frames.csv``: one row per frame (frame 0 is the reference, tracker ``init``): the fields of
+  :class:`~dfvo.tracking.diagnostics.FrameDiagnostics` and the seconds per stage.
+- ``metrics.json``, ``summary.json``, the plots: at the end (:mod:`dfvo.inference.report`).
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dfvo.io.json_io import write_json
+from dfvo.tracking.diagnostics import DIAGNOSTIC_FIELDS, FrameDiagnostics
 
-__all__ = ["PoseWriter", "FramesCsv", "CSV_FIELDS", "write_json", "fallback_summary"]
+__all__ = ["prepare_out_dir", "PoseWriter", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary"]
 
-CSV_FIELDS = ["frame", "tracker", "num_correspondences", "num_inliers", "gric_e", "gric_h", "scale",
-              "fallback_reason", "constant_motion", "pnp_failed", "t_flow", "t_refine", "t_depth", "t_tracker"]
+STAGE_FIELDS = ["t_flow", "t_refine", "t_depth", "t_tracker"]
+CSV_FIELDS = [f for f in DIAGNOSTIC_FIELDS if not f.startswith("time_")] + STAGE_FIELDS
+
+
+def prepare_out_dir(out_dir: Any) -> Path:
+    """Create the output folder ``out_dir`` (parents included) and check that it is writable.
+
+    Raises:
+        ValueError: ``out_dir`` is not set.
+        OSError: the folder cannot be created or written (a path component is a file, no permission, ...); the
+            message names ``out_dir`` and the cause.
+    """
+    if out_dir is None or not str(out_dir).strip():
+        raise ValueError("out_dir is not set; pass out_dir=FOLDER (created if missing)")
+    out = Path(str(out_dir))
+    blocker = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise NotADirectoryError(f"out_dir={out}: cannot create the output folder, {blocker} is a file, not a "
+                                 "folder; pass out_dir= a folder path")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise type(err)(f"out_dir={out}: cannot create the output folder ({err.strerror or err}); pass out_dir= a "
+                        "writable folder path") from err
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise PermissionError(f"out_dir={out}: the output folder is not writable; pass out_dir= a writable folder")
+    return out
 
 
 def pose_line(T: np.ndarray) -> str:
@@ -42,7 +67,7 @@ class PoseWriter:
         self._f = self.path.open("w")
         self.count = 0
 
-    def write(self, T_w_c: np.ndarray) -> None:
+    def write(self, T_w_c: np.ndarray, timestamp: float | None = None) -> None:
         """Append one (4,4) camera-to-world pose."""
         self._f.write(pose_line(T_w_c) + "\n")
         self._f.flush()
@@ -55,15 +80,17 @@ class PoseWriter:
 def _fmt(v: Any) -> Any:
     if v is None:
         return ""
-    if hasattr(v, "item") and getattr(v, "numel", lambda: 1)() == 1:
-        v = v.item()
+    if isinstance(v, bool):
+        return int(v)
+    if hasattr(v, "value") and not isinstance(v, int | float | str):
+        return v.value
     if isinstance(v, float):
         return "" if math.isnan(v) else f"{v:.6g}"
     return v
 
 
 class FramesCsv:
-    """Per-frame diagnostics, one flushed CSV row per frame (columns :data:`CSV_FIELDS`, extra keys dropped)."""
+    """Per-frame diagnostics, one flushed CSV row per frame (columns :data:`CSV_FIELDS`)."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
@@ -72,7 +99,9 @@ class FramesCsv:
         self._w.writeheader()
         self._f.flush()
 
-    def write(self, row: dict[str, Any]) -> None:
+    def write(self, diagnostics: FrameDiagnostics, stage_seconds: dict[str, float] | None = None) -> None:
+        """One row: the frame's diagnostics and its seconds per stage (``t_flow``, ...)."""
+        row = {**diagnostics.as_row(), **(stage_seconds or {})}
         self._w.writerow({k: _fmt(row.get(k)) for k in CSV_FIELDS})
         self._f.flush()
 
@@ -80,20 +109,21 @@ class FramesCsv:
         self._f.close()
 
 
-def fallback_summary(rows: list[dict[str, Any]], threshold: float = 0.2) -> dict[str, Any]:
-    """Fraction of tracked frames that fell back to constant motion or whose PnP failed.
+def fallback_summary(diagnostics: list[FrameDiagnostics], threshold: float = 0.2) -> dict[str, Any]:
+    """Counts of the trackers used and of the frames that fell back to constant motion or whose PnP failed.
 
     Args:
-        rows: per-frame rows (frame 0 excluded) with bool ``constant_motion`` and ``pnp_failed``.
+        diagnostics: the tracked frames (frame 0 excluded).
         threshold: fraction above which ``warn`` is True.
     """
-    n = max(len(rows), 1)
-    const = sum(bool(r.get("constant_motion")) for r in rows)
-    pnp_fail = sum(bool(r.get("pnp_failed")) for r in rows)
+    n = max(len(diagnostics), 1)
+    const = sum(d.constant_motion for d in diagnostics)
+    pnp_fail = sum(d.pnp_failed for d in diagnostics)
     trackers: dict[str, int] = {}
-    for r in rows:
-        trackers[str(r.get("tracker"))] = trackers.get(str(r.get("tracker")), 0) + 1
-    out = {"frames": len(rows), "constant_motion": const, "pnp_failed": pnp_fail,
+    for d in diagnostics:
+        name = d.tracker.value if d.tracker is not None else "none"
+        trackers[name] = trackers.get(name, 0) + 1
+    out = {"frames": len(diagnostics), "constant_motion": const, "pnp_failed": pnp_fail,
            "constant_motion_rate": const / n, "pnp_failed_rate": pnp_fail / n, "trackers": trackers}
     out["warn"] = out["constant_motion_rate"] > threshold or out["pnp_failed_rate"] > threshold
     return out

@@ -1,55 +1,70 @@
-"""Optional TensorBoard logging of an inference run (``tensorboard.enabled=true``).
-
-Per logged frame (every ``tensorboard.every`` frames): the frame, its forward flow (colour wheel), the
-forward-backward inconsistency (heat map, blue = leaves the image), the depth (inverse, normalised), the
-correspondences that selection keeps (green dots on the frame), and the per-frame scalars of ``frames.csv``.
-At the end: a bird's-eye trajectory figure and the metrics.
-
-Convention: tensors of one frame pair without the batch axis: image (3,H,W), flows (2,H,W), depth (1,H,W).
-"""
+"""TensorBoard logging of an inference run (``tensorboard.enabled=true``): every ``every``-th frame's image, flow,
+forward-backward inconsistency, inverse depth, the tracker's correspondences and its diagnostics as scalars; the
+trajectory at the end. Training logs to TensorBoard through Lightning instead."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
-from dfvo.matching.selection import select_correspondences
 from dfvo.training.flow_viz import flow_to_color, scalar_to_color
 
-__all__ = ["log_frame", "log_trajectory"]
+__all__ = ["TensorboardObserver", "log_trajectory"]
 
-SCALARS = ("num_correspondences", "num_inliers", "gric_e", "gric_h", "scale", "t_flow", "t_depth", "t_tracker")
+SCALARS = ("num_correspondences", "num_inliers", "gric_e", "gric_h", "scale")
 
 
-def log_frame(writer: Any, step: int, image: torch.Tensor, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor,
-              depth: torch.Tensor, row: dict[str, Any], cfg: Any) -> None:
-    """Log images and scalars of frame ``step`` (the later frame of the pair; ``image`` is the earlier one)."""
-    image = image.detach().cpu().float()
-    fwd, bwd = flow_fwd.detach().cpu()[None], flow_bwd.detach().cpu()[None]
-    incon = forward_backward_inconsistency(fwd, bwd)
-    writer.add_image("frame", image, step)
-    writer.add_image("flow_fwd", flow_to_color(fwd)[0], step)
-    writer.add_image("inconsistency", scalar_to_color(incon, vmax=1.0)[0], step)
-    inv = 1.0 / depth.detach().cpu().clamp(min=1e-3)
-    writer.add_image("inverse_depth", (inv / inv.max().clamp(min=1e-6)).expand(3, -1, -1), step)
-    corr = cfg.get("correspondence", {})
-    sel = select_correspondences(fwd, incon, method=str(corr.get("selection_method", "local_best_k")),
-                                 num=int(corr.get("num_correspondences", 2000)))
-    dots = image.clone()
-    pts = sel.pts_i[0][sel.mask[0]].round().long()
-    h, w = image.shape[-2:]
-    u, v = pts[:, 0].clamp(0, w - 1), pts[:, 1].clamp(0, h - 1)
-    dots[:, v, u] = torch.tensor([0.0, 1.0, 0.0])[:, None]
-    writer.add_image("correspondences", dots, step)
-    for key in SCALARS:
-        value = row.get(key)
-        if isinstance(value, torch.Tensor):
-            value = value.item() if value.numel() == 1 else None
-        if isinstance(value, int | float) and np.isfinite(value):
-            writer.add_scalar(f"frame/{key}", value, step)
+class TensorboardObserver:
+    """Writes ``OUT/tensorboard`` as frames are tracked (``on_frame``), one event file per run.
+
+    Args:
+        folder: the event folder. every: log images of every ``every``-th frame (scalars of every frame).
+        tracker: unused; kept for symmetry with other observers.
+    """
+
+    def __init__(self, folder: Path, every: int = 10, tracker: Any = None) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(str(folder))
+        self.every = max(1, int(every))
+
+    def on_frame(self, record: FrameRecord) -> None:
+        """Log frame ``record.index``."""
+        step = record.index
+        row = {**record.result.diagnostics.as_row(), **record.stage_seconds}
+        for key in (*SCALARS, *record.stage_seconds):
+            value = row.get(key)
+            if isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value):
+                self.writer.add_scalar(f"frame/{key}", value, step)
+        if (step - 1) % self.every:
+            return
+        image = record.image_prev.detach().cpu().float()
+        fwd, bwd = record.flow_fwd.detach().cpu()[None], record.flow_bwd.detach().cpu()[None]
+        self.writer.add_image("frame", image, step)
+        self.writer.add_image("flow_fwd", flow_to_color(fwd)[0], step)
+        self.writer.add_image("inconsistency", scalar_to_color(forward_backward_inconsistency(fwd, bwd),
+                                                               vmax=1.0)[0], step)
+        inv = 1.0 / record.depth_prev.detach().cpu().clamp(min=1e-3)
+        self.writer.add_image("inverse_depth", (inv / inv.max().clamp(min=1e-6)).expand(3, -1, -1), step)
+        matches = record.result.matches
+        if matches is not None and len(matches.pts_prev):
+            dots = image.clone()
+            h, w = image.shape[-2:]
+            pts = matches.pts_prev.round().long()
+            u, v = pts[:, 0].clamp(0, w - 1), pts[:, 1].clamp(0, h - 1)
+            inl = matches.inliers if matches.inliers is not None else torch.ones(len(pts), dtype=torch.bool)
+            colour = torch.where(inl.cpu()[None], torch.tensor([0.0, 1.0, 0.0])[:, None],
+                                 torch.tensor([1.0, 0.0, 0.0])[:, None])
+            dots[:, v, u] = colour
+            self.writer.add_image("correspondences", dots, step)
+
+    def close(self) -> None:
+        self.writer.close()
 
 
 def log_trajectory(writer: Any, gt: np.ndarray | None, pred: np.ndarray, metrics: dict[str, Any] | None) -> None:

@@ -1,75 +1,59 @@
-"""What gives flow and depth at inference: trained networks or the synthetic world's ground truth (oracle).
-
-Common interface (duck-typed):
-    ``FlowSource(images_prev (B,3,H,W), images_cur (B,3,H,W), indices=None) -> (flow_fwd, flow_bwd)``, each
-    (B,2,H,W) in pixels, prev→cur on prev's pixels and cur→prev on cur's pixels.
-    ``DepthSource(images (B,3,H,W), indices=None) -> depth (B,1,H,W)`` in metres.
-    ``indices`` are the frames' indices in their sequence (only the oracle needs them).
+"""What gives flow and depth at inference: trained networks, the synthetic world's ground truth (oracle), or a
+classical flow (OpenCV DIS) — each behind the :class:`FlowSource` / :class:`DepthSource` interfaces.
 
 ``source: auto`` (the default of ``infer.py``) uses the trained checkpoint when the file exists and the oracle
-otherwise on synthetic data, so ``python infer.py`` runs on a fresh clone before the networks are shipped.
+otherwise on synthetic data, so ``python infer.py`` runs on a fresh clone whatever is shipped.
 """
 
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
-from dfvo.sources.networks import CheckpointError, NetworkDepth, NetworkFlow, load_weights
+from dfvo.io.checkpoint import CheckpointError, find_checkpoint, load_weights
+from dfvo.sources.base import DepthSource, FlowSource
+from dfvo.sources.config import DepthSourceConfig, DepthSourceKind, FlowSourceConfig, FlowSourceKind
+from dfvo.sources.networks import NetworkDepth, NetworkFlow
 from dfvo.sources.oracle import OracleDepth, OracleFlow
 
 log = logging.getLogger("dfvo.sources")
 
-__all__ = ["find_checkpoint", "resolve_source", "check_sources", "CheckpointError", "NetworkDepth", "NetworkFlow",
-           "OracleDepth", "OracleFlow", "build_flow_source", "build_depth_source", "load_weights"]
-
-
-def find_checkpoint(path: str | Path | None) -> Path:
-    """A relative checkpoint path is looked up in the working directory, then in the installed package (where the
-    shipped ``checkpoints/`` live: ``checkpoints/flow.safetensors`` is ``dfvo/checkpoints/flow.safetensors``); the
-    working-directory path is returned when neither exists."""
-    if not path:
-        raise CheckpointError("no checkpoint given: set flow.checkpoint= / depth.checkpoint= to a weights file")
-    p = Path(path)
-    if p.is_absolute() or p.exists():
-        return p
-    shipped = Path(__file__).resolve().parents[1] / p
-    return shipped if shipped.exists() else p
-
-
-def resolve_source(cfg: Any, world: Any, what: str) -> str:
-    """``source: auto`` becomes ``network`` when ``checkpoint`` exists, else ``oracle`` on synthetic data
-    (logged); on real data without the checkpoint it raises a :class:`CheckpointError` naming the file."""
-    kind = cfg.get("source")
-    if kind != "auto":
-        return kind
-    ckpt = cfg.get("checkpoint")
-    if ckpt and find_checkpoint(ckpt).is_file():
-        return "network"
-    if world is not None:
-        log.info("%s=auto: %s not found, using the oracle (true %s of the synthetic world)", what, ckpt, what)
-        return "oracle"
-    raise CheckpointError(f"{what}=auto: {what} network checkpoint {ckpt} does not exist and this dataset has no "
-                          f"ground truth for {what}=oracle; set {what}.checkpoint=PATH (a trained "
-                          f"{'FlowNet' if what == 'flow' else 'DepthNet'})")
-
+__all__ = ["FlowSource", "DepthSource", "FlowSourceConfig", "DepthSourceConfig", "resolve_source", "check_sources",
+           "build_flow_source", "build_depth_source", "CheckpointError", "NetworkDepth", "NetworkFlow", "OracleDepth",
+           "OracleFlow", "find_checkpoint", "load_weights"]
 
 NETWORKS = {"flow": "FlowNet", "depth": "DepthNet"}
 ORACLES = {"flow": OracleFlow, "depth": OracleDepth}
 
 
+def resolve_source(cfg: Any, world: Any, what: str) -> str:
+    """The source kind a ``flow``/``depth`` config selects, with ``auto`` resolved: ``network`` when the checkpoint
+    exists, else ``oracle`` on synthetic data (logged); on real data without the checkpoint a
+    :class:`CheckpointError` names the file."""
+    kind = str(cfg.source.value if hasattr(cfg.source, "value") else cfg.source)
+    if kind != "auto":
+        return kind
+    ckpt = cfg.checkpoint
+    if ckpt and find_checkpoint(ckpt, f"{what}.checkpoint").is_file():
+        return "network"
+    if world is not None:
+        log.info("%s=auto: %s not found, using the oracle (true %s of the synthetic world)", what, ckpt, what)
+        return "oracle"
+    raise CheckpointError(f"{what}=auto: {what} network checkpoint {ckpt} does not exist and this dataset has no "
+                          f"ground truth for {what}=oracle; set {what}.checkpoint=PATH (a trained {NETWORKS[what]})")
+
+
 def check_sources(flow_cfg: Any, depth_cfg: Any, world: Any = None) -> dict[str, str]:
     """Resolve the ``flow`` and ``depth`` sources together, before either is built, and report every problem at
     once: an ``auto`` source without its checkpoint on data without ground truth, a ``network`` source whose
-    checkpoint file does not exist, an ``oracle`` source on data without ground truth.
+    checkpoint does not exist, an ``oracle`` source on data without ground truth.
 
     Returns:
-        ``{"flow": kind, "depth": kind}`` with ``auto`` resolved (``"oracle"`` or ``"network"``).
+        ``{"flow": kind, "depth": kind}`` with ``auto`` resolved.
 
     Raises:
-        CheckpointError: when a checkpoint is missing, naming each problem (one line per source).
-        ValueError: when the only problems are oracle sources on data without ground truth.
+        CheckpointError: a checkpoint is missing (one line per problem).
+        ValueError: the only problems are oracle sources on data without ground truth.
     """
     kinds: dict[str, str] = {}
     problems: list[str] = []
@@ -77,10 +61,9 @@ def check_sources(flow_cfg: Any, depth_cfg: Any, world: Any = None) -> dict[str,
     for what, cfg in (("flow", flow_cfg), ("depth", depth_cfg)):
         try:
             kinds[what] = kind = resolve_source(cfg, world, what)
-            ckpt = cfg.get("checkpoint")
-            if kind == "network" and not (ckpt and find_checkpoint(ckpt).is_file()):
-                raise CheckpointError(f"{what}=network: {what} network checkpoint {ckpt} does not exist; set "
-                                      f"{what}.checkpoint=PATH (a trained {NETWORKS[what]})")
+            if kind == "network" and not (cfg.checkpoint and find_checkpoint(cfg.checkpoint).is_file()):
+                raise CheckpointError(f"{what}=network: {what} network checkpoint {cfg.checkpoint} does not exist; "
+                                      f"set {what}.checkpoint=PATH (a trained {NETWORKS[what]})")
             if kind == "oracle":
                 ORACLES[what](world)  # raises when the data has no ground truth
         except CheckpointError as err:
@@ -96,26 +79,27 @@ def check_sources(flow_cfg: Any, depth_cfg: Any, world: Any = None) -> dict[str,
     return kinds
 
 
-def build_flow_source(cfg: Any, world: Any = None, device: str = "cpu") -> OracleFlow | NetworkFlow:
-    """Flow source from the ``flow`` config group (``source: oracle|network|auto``, ``checkpoint``, ``variant``,
-    ``input_size``)."""
+def build_flow_source(cfg: FlowSourceConfig, world: Any = None, device: str = "cpu") -> FlowSource:
+    """The flow source a :class:`FlowSourceConfig` describes (``world``: the synthetic world for the oracle)."""
     kind = resolve_source(cfg, world, "flow")
-    if kind == "oracle":
+    if kind == FlowSourceKind.oracle:
         return OracleFlow(world)
-    if kind == "network":
-        return NetworkFlow(find_checkpoint(cfg.get("checkpoint")), cfg.get("variant"), device=device,
-                           input_size=cfg.get("input_size"))
-    raise ValueError(f"flow.source={kind!r}; expected 'oracle', 'network' or 'auto' (conf/flow/*.yaml)")
+    if kind == FlowSourceKind.network:
+        return NetworkFlow(find_checkpoint(cfg.checkpoint, "flow.checkpoint"), cfg.variant, device=device,
+                           input_size=cfg.input_size)
+    if kind == FlowSourceKind.dis:
+        from dfvo.sources.dis import DISFlow
+
+        return DISFlow(preset=cfg.preset, device=device)
+    raise ValueError(f"flow.source={kind!r}; expected one of {[k.value for k in FlowSourceKind]}")
 
 
-def build_depth_source(cfg: Any, world: Any = None, device: str = "cpu") -> OracleDepth | NetworkDepth:
-    """Depth source from the ``depth`` config group (``source: oracle|network|auto``, ``checkpoint``,
-    ``depth_scale``, depth range, ``input_size``)."""
+def build_depth_source(cfg: DepthSourceConfig, world: Any = None, device: str = "cpu") -> DepthSource:
+    """The depth source a :class:`DepthSourceConfig` describes (``world``: the synthetic world for the oracle)."""
     kind = resolve_source(cfg, world, "depth")
-    if kind == "oracle":
+    if kind == DepthSourceKind.oracle:
         return OracleDepth(world)
-    if kind == "network":
-        return NetworkDepth(find_checkpoint(cfg.get("checkpoint")), cfg.get("depth_scale", 1.0),
-                            cfg.get("min_depth", 0.1), cfg.get("max_depth", 100.0), device=device,
-                            input_size=cfg.get("input_size"), flip_average=bool(cfg.get("flip_average", False)))
-    raise ValueError(f"depth.source={kind!r}; expected 'oracle', 'network' or 'auto' (conf/depth/*.yaml)")
+    if kind == DepthSourceKind.network:
+        return NetworkDepth(find_checkpoint(cfg.checkpoint, "depth.checkpoint"), cfg.depth_scale, cfg.min_depth,
+                            cfg.max_depth, device=device, input_size=cfg.input_size, flip_average=cfg.flip_average)
+    raise ValueError(f"depth.source={kind!r}; expected one of {[k.value for k in DepthSourceKind]}")

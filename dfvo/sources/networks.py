@@ -1,10 +1,6 @@
 """Network sources: trained flow and depth checkpoints, loaded safely (tensors only, no pickled code).
 
-Accepted checkpoint files:
-    - ``.safetensors`` (the shipped format; optional metadata ``variant`` for the flow network),
-    - ``.pt`` / ``.pth`` / ``.ckpt`` read with ``torch.load(weights_only=True)``: a state dict, or a Lightning
-      checkpoint whose ``state_dict`` holds the network under a prefix (``net.``, ``flow_net.``, ``depth_net.``,
-      ``depth.``, ``model.``); the prefix that matches the expected network is stripped.
+Checkpoint files are read by :mod:`dfvo.io.checkpoint` (``.safetensors``, or weights-only ``.pt``/``.ckpt``).
 
 Network input size:
     A network runs best at the resolution it was trained at (a correlation layer's search range is in pixels;
@@ -26,89 +22,14 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
-from torch import nn
 
+from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
 
-__all__ = ["CheckpointError", "blend_flipped_inverse_depth", "load_weights", "NetworkFlow", "NetworkDepth",
-           "resolve_input_size"]
+__all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
 
 VARIANTS = ("default", "small", "tiny")
-PREFIXES = ("", "net.", "flow_net.", "flow.", "depth_net.", "depth.", "pose_net.", "model.")
-
-
-class CheckpointError(ValueError):
-    """A checkpoint is missing, unreadable, unsafe, or does not hold the expected network."""
-
-
-def _read_state(path: Path, expected: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    if not path.is_file():
-        raise CheckpointError(f"{expected} checkpoint {path} does not exist (set {expected.split()[0]}.checkpoint= to "
-                              f"a .safetensors/.pt/.ckpt file holding a {expected}, or use the oracle source on "
-                              f"synthetic data)")
-    if path.suffix == ".safetensors":
-        from safetensors import safe_open
-        try:
-            with safe_open(str(path), framework="pt") as f:
-                meta = dict(f.metadata() or {})
-                return {k: f.get_tensor(k) for k in f.keys()}, meta
-        except Exception as err:  # safetensors raises its own error types
-            raise CheckpointError(f"{expected} checkpoint {path}: not a readable safetensors file ({err})") from err
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise CheckpointError(f"{expected} checkpoint {path}: cannot be loaded as weights only ({type(err).__name__}: "
-                              f"{str(err).splitlines()[0][:200]}); export the network's state dict to .safetensors "
-                              f"(safetensors.torch.save_file) — pickled objects are not loaded") from err
-    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
-        meta = {k: str(v) for k, v in obj.items() if isinstance(v, str | int | float)}
-        obj = obj["state_dict"]
-    else:
-        meta = {}
-    if not isinstance(obj, dict) or not all(isinstance(v, torch.Tensor) for v in obj.values()):
-        raise CheckpointError(f"{expected} checkpoint {path}: expected a state dict of tensors, "
-                              f"got {type(obj).__name__}")
-    return obj, meta
-
-
-def load_weights(model: nn.Module, path: str | Path, expected: str) -> dict[str, str]:
-    """Load the weights of ``model`` from ``path`` safely.
-
-    Args:
-        model: the network to fill (its architecture must match the checkpoint).
-        path: checkpoint file (see module docstring).
-        expected: human name of the network (``"flow network FlowNet('default')"``) used in error messages.
-
-    Returns:
-        The checkpoint's string metadata (safetensors metadata or scalar Lightning fields).
-
-    Raises:
-        CheckpointError: missing file, unsafe/unreadable file, no prefix matching the model's parameters,
-            missing/unexpected keys or shape mismatches.
-    """
-    path = Path(path)
-    state, meta = _read_state(path, expected)
-    wanted = model.state_dict()
-    best, best_hits = "", -1
-    for p in PREFIXES:
-        hits = sum(1 for k in state if k.startswith(p) and k[len(p):] in wanted)
-        if hits > best_hits:
-            best, best_hits = p, hits
-    sub = {k[len(best):]: v for k, v in state.items() if k.startswith(best)}
-    missing = sorted(set(wanted) - set(sub))
-    unexpected = sorted(set(sub) - set(wanted))
-    if best_hits <= 0 or missing or unexpected:
-        raise CheckpointError(f"{expected} checkpoint {path}: does not hold a {expected} "
-                              f"({len(missing)} missing keys e.g. {missing[:3]}, {len(unexpected)} unexpected e.g. "
-                              f"{unexpected[:3]})")
-    bad = [k for k, v in sub.items() if v.shape != wanted[k].shape]
-    if bad:
-        k = bad[0]
-        raise CheckpointError(f"{expected} checkpoint {path}: tensor {k} has shape {tuple(sub[k].shape)}, the model "
-                              f"expects {tuple(wanted[k].shape)} (another network variant?)")
-    model.load_state_dict({k: v.to(wanted[k].dtype) for k, v in sub.items()})
-    return meta
 
 
 def resolve_input_size(input_size: Any, meta: dict[str, str], what: str) -> tuple[int, int] | None:
@@ -161,12 +82,12 @@ class NetworkFlow:
         self.checkpoint = Path(checkpoint)
         meta = {}
         if self.checkpoint.is_file():
-            _, meta = _read_state(self.checkpoint, "flow network")
+            _, meta = read_state_dict(self.checkpoint, "flow network", "flow.checkpoint")
         if variant is None and "variant" not in meta and self.checkpoint.is_file():
             variant = self._guess_variant(device)
         self.variant = variant or meta.get("variant", "default")
         self.model = FlowNet(self.variant).to(device).eval()
-        load_weights(self.model, self.checkpoint, f"flow network FlowNet({self.variant!r})")
+        load_weights(self.model, self.checkpoint, f"flow network FlowNet({self.variant!r})", "flow.checkpoint")
         self.device = torch.device(device)
         self.input_size = resolve_input_size(input_size, meta, "flow")
 
@@ -240,7 +161,7 @@ class NetworkDepth:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)
         self.model = DepthNet(min_depth, max_depth).to(device).eval()
-        meta = load_weights(self.model, self.checkpoint, "depth network DepthNet")
+        meta = load_weights(self.model, self.checkpoint, "depth network DepthNet", "depth.checkpoint")
         self.depth_scale = float(depth_scale)
         self.device = torch.device(device)
         self.input_size = resolve_input_size(input_size, meta, "depth")

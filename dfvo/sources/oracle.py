@@ -10,11 +10,13 @@ Convention:
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.data.synthetic import SyntheticWorld
+if TYPE_CHECKING:
+    from dfvo.data.synthetic import SyntheticWorld
 
 __all__ = ["OracleFlow", "OracleDepth"]
 

@@ -16,7 +16,7 @@ import torch
 
 from dfvo.geometry.gric import gric_essential, gric_homography
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, find_homography_ransac
-from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.config import ModelSelectionMethod, TrackerConfig
 from dfvo.tracking.model_selection import prefer_pnp_flow, prefer_pnp_gric
 from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depths
 
@@ -52,33 +52,34 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
     E preferred by model selection (GRIC_E <= GRIC_H, or enough flow), and at least
     ``min_cheirality_fraction`` of the rows passing cheirality."""
     B = pts_i.shape[0]
+    ess, sel = cfg.essential, cfg.model_selection
     n = mask.sum(-1)
-    enough = n > cfg.min_correspondences
-    ransac = find_essential_ransac(pts_i, pts_j, mask, K, threshold_px=cfg.e_threshold_px,
-                                   iterations=cfg.e_iterations, repeats=cfg.ransac_repeats, generators=generators)
+    enough = n > ess.min_correspondences
+    ransac = find_essential_ransac(pts_i, pts_j, mask, K, threshold_px=ess.threshold_px,
+                                   iterations=ess.iterations, repeats=ess.repeats, generators=generators)
     R, t, front = decompose_essential(ransac.model, K, pts_i, pts_j, mask)
     cheir = front.sum(-1).to(torch.float64) / n.clamp_min(1).to(torch.float64)
     nan = torch.full((B,), float("nan"), dtype=torch.float64, device=pts_i.device)
-    if cfg.model_selection == "gric":
-        H = find_homography_ransac(pts_i, pts_j, mask, threshold_px=cfg.h_threshold_px,
-                                   iterations=cfg.h_iterations, generators=generators)
-        g_e = gric_essential(ransac.model, K, pts_i, pts_j, mask, sigma=cfg.gric_sigma)
-        g_h = gric_homography(H.model, pts_i, pts_j, mask, sigma=cfg.gric_sigma)
+    if sel.method == ModelSelectionMethod.gric:
+        H = find_homography_ransac(pts_i, pts_j, mask, threshold_px=sel.h_threshold_px,
+                                   iterations=sel.h_iterations, generators=generators)
+        g_e = gric_essential(ransac.model, K, pts_i, pts_j, mask, sigma=sel.gric_sigma)
+        g_h = gric_homography(H.model, pts_i, pts_j, mask, sigma=sel.gric_sigma)
         pnp_wanted = prefer_pnp_gric(g_e, g_h)
     else:
         g_e, g_h = nan, nan.clone()
-        pnp_wanted = prefer_pnp_flow(pts_i, pts_j, mask, cfg.flow_magnitude_threshold)
+        pnp_wanted = prefer_pnp_flow(pts_i, pts_j, mask, sel.flow_magnitude_threshold)
     reasons: list[str | None] = []
     valid = torch.zeros(B, dtype=torch.bool, device=pts_i.device)
     for b in range(B):
         if not bool(enough[b]):
-            reasons.append(f"E invalid: {int(n[b])} correspondences <= {cfg.min_correspondences}")
+            reasons.append(f"E invalid: {int(n[b])} correspondences <= {ess.min_correspondences}")
         elif not bool(ransac.success[b]):
             reasons.append("E invalid: RANSAC found no model")
         elif bool(pnp_wanted[b]):
-            reasons.append("model selection prefers PnP (GRIC_E > GRIC_H)" if cfg.model_selection == "gric"
-                           else f"model selection prefers PnP (median flow <= {cfg.flow_magnitude_threshold} px)")
-        elif float(cheir[b]) < cfg.min_cheirality_fraction:
+            reasons.append("model selection prefers PnP (GRIC_E > GRIC_H)" if sel.method == ModelSelectionMethod.gric
+                           else f"model selection prefers PnP (median flow <= {sel.flow_magnitude_threshold} px)")
+        elif float(cheir[b]) < ess.min_cheirality_fraction:
             reasons.append(f"E invalid: {float(cheir[b]):.1%} of points pass cheirality")
         else:
             reasons.append(None)
@@ -93,27 +94,28 @@ def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j
     """Simple scale (1-D RANSAC on CNN / triangulated depth ratios) of unit ``T_cur_prev`` motions.
 
     ``depth_i`` (B,1,H,W) is the CNN depth of the earlier frame. With ``depth_j`` (the later frame's, given when
-    ``cfg.scale_depth_views == 2``) a second scale comes from the ratios in camera j at ``pts_j``, and the result
-    is the geometric mean of the two when they agree within ``cfg.scale_views_max_ratio`` (else the earlier
+    ``cfg.scale.depth_views == 2``) a second scale comes from the ratios in camera j at ``pts_j``, and the result
+    is the geometric mean of the two when they agree within ``cfg.scale.views_max_ratio`` (else the earlier
     frame's scale, as in the paper; the one that succeeded when only one did).
 
     Returns:
-        scale (B,) float64 and success (B,) bool (needs more than ``scale_min_points`` usable rows).
+        scale (B,) float64 and success (B,) bool (needs more than ``cfg.scale.min_points`` usable rows).
     """
+    sc = cfg.scale
     z_tri_i, z_tri_j, front = triangulated_depths(R, t, K, pts_i, pts_j)
 
     def one_view(depth: torch.Tensor, pts: torch.Tensor, z_tri: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        z_cnn, ok = sample_depth(depth, pts, cfg.max_depth, cfg.depth_crop_top)
-        s, _, success = simple_scale(z_cnn, z_tri, mask & ok & front, trials=cfg.scale_ransac_trials,
-                                     samples=cfg.scale_ransac_samples, threshold=cfg.scale_inlier_threshold,
-                                     min_points=cfg.scale_min_points, generators=generators)
+        z_cnn, ok = sample_depth(depth, pts, sc.max_depth, sc.depth_crop_top)
+        s, _, success = simple_scale(z_cnn, z_tri, mask & ok & front, trials=sc.ransac_trials,
+                                     samples=sc.ransac_samples, threshold=sc.inlier_threshold,
+                                     min_points=sc.min_points, generators=generators)
         return s, success
 
     s_i, ok_i = one_view(depth_i, pts_i, z_tri_i)
     if depth_j is None:
         return s_i, ok_i
     s_j, ok_j = one_view(depth_j, pts_j, z_tri_j)
-    agree = (s_i.clamp_min(1e-12) / s_j.clamp_min(1e-12)).log().abs() <= math.log(cfg.scale_views_max_ratio)
+    agree = (s_i.clamp_min(1e-12) / s_j.clamp_min(1e-12)).log().abs() <= math.log(sc.views_max_ratio)
     both = ok_i & ok_j & agree
     s = torch.where(both, (s_i.clamp_min(0) * s_j.clamp_min(0)).sqrt(), torch.where(ok_i, s_i, s_j))
     return s, ok_i | ok_j

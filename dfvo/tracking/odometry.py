@@ -2,7 +2,7 @@
 
 Convention:
     Pairs are (prev=i, cur=j): ``flow_fwd`` i->j and ``flow_bwd`` j->i (B,2,H,W) in pixels, ``depth`` of frame
-    i (B,1,H,W) in metres (and ``depth_next`` of frame j, needed when ``scale_depth_views=2``), intrinsics
+    i (B,1,H,W) in metres (and ``depth_next`` of frame j, needed when ``tracker.scale.depth_views=2``), intrinsics
     ``K`` (B,3,3). Trackers estimate ``T_cur_prev`` (prev points into the
     current camera); the loop returns ``T_prev_cur = inv(T_cur_prev)`` and accumulates
     ``T_w_cur = T_w_prev @ T_prev_cur`` from ``T_w_0 = I``. Poses are float64.
@@ -20,7 +20,7 @@ pose composition run frame by frame in order.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -30,23 +30,34 @@ from dfvo.geometry.se3 import pose_from_rt
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.selection import select_correspondences
-from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
+from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.e_tracker import essential_scale, track_essential
 from dfvo.tracking.pnp_tracker import track_pnp
 from dfvo.tracking.scale import iterative_scale, sample_depth
 
-__all__ = ["FrameResult", "VisualOdometry"]
+__all__ = ["FrameMatches", "FrameResult", "VisualOdometry"]
+
+
+@dataclass
+class FrameMatches:
+    """The correspondences a frame was tracked with: ``pts_prev``/``pts_cur`` (N,2) pixels of the selected rows and
+    ``inliers`` (N,) bool of the model used (None when no model was fitted)."""
+
+    pts_prev: torch.Tensor
+    pts_cur: torch.Tensor
+    inliers: torch.Tensor | None = None
 
 
 @dataclass
 class FrameResult:
-    """One tracked frame: ``T_w_cur`` (4,4), ``T_prev_cur`` (4,4) float64, and ``diagnostics`` with keys
-    tracker ("E", "PnP", "constant_motion"), num_correspondences, num_inliers, gric_e, gric_h, scale,
-    fallback_reason, cheirality_fraction, pnp_success, selection_failed, time_* (seconds)."""
+    """One tracked frame: ``T_w_cur`` (4,4), ``T_prev_cur`` (4,4) float64, its :class:`FrameDiagnostics` and the
+    :class:`FrameMatches` it used."""
 
     T_w_cur: torch.Tensor
     T_prev_cur: torch.Tensor
-    diagnostics: dict[str, Any] = field(default_factory=dict)
+    diagnostics: FrameDiagnostics
+    matches: FrameMatches | None = None
 
 
 def _inv(T: torch.Tensor) -> torch.Tensor:
@@ -113,35 +124,36 @@ class VisualOdometry:
         KORNIA_CHECK(flow_bwd.shape == flow_fwd.shape and same,
                      f"VisualOdometry: flow_fwd {tuple(flow_fwd.shape)}, flow_bwd "
                      f"{tuple(flow_bwd.shape)}, depth {tuple(depth.shape)}, K {tuple(K.shape)} must share B, H, W")
-        if cfg.scale_depth_views == 2 and cfg.tracker != "pnp":  # PnP uses the earlier frame's depth only
+        if cfg.scale.depth_views == 2 and cfg.mode != TrackerMode.pnp:  # PnP uses the earlier frame's depth only
             if depth_next is None or depth_next.shape != depth.shape:
-                raise ValueError(f"VisualOdometry: scale_depth_views=2 needs the later frame's depth of each pair "
-                                 f"(run(depths_next=...) / step(depth_cur=...)) shaped like depth "
+                raise ValueError(f"VisualOdometry: tracker.scale.depth_views=2 needs the later frame's depth of each "
+                                 f"pair (run(depths_next=...) / step(depth_cur=...)) shaped like depth "
                                  f"{tuple(depth.shape)}; got {None if depth_next is None else tuple(depth_next.shape)}")
         else:
             depth_next = None  # the paper's one-view scale: a given next depth is not used
         gens = [torch.Generator().manual_seed(cfg.seed + self.frame + b) for b in range(B)]
         t0 = time.perf_counter()
+        sel = cfg.correspondence
         incon = forward_backward_inconsistency(flow_fwd, flow_bwd)
-        corr = select_correspondences(flow_fwd, incon, method=cfg.selection_method, num=cfg.num_correspondences,
-                                      grid=cfg.grid, max_inconsistency=cfg.max_inconsistency,
-                                      min_valid_fraction=cfg.min_valid_fraction,
-                                      min_region_fraction=cfg.min_region_fraction, crop_top=cfg.selection_crop_top)
+        corr = select_correspondences(flow_fwd, incon, method=sel.method.value, num=sel.num_correspondences,
+                                      grid=tuple(sel.grid), max_inconsistency=sel.max_inconsistency,
+                                      min_valid_fraction=sel.min_valid_fraction,
+                                      min_region_fraction=sel.min_region_fraction, crop_top=sel.crop_top)
         pi, pj, mask = corr.pts_i.to(torch.float64), corr.pts_j.to(torch.float64), corr.mask
         Kd = K.to(torch.float64)
         t1 = time.perf_counter()
         e_res, scale, scale_ok = None, None, None
-        if cfg.tracker != "pnp":
+        if cfg.mode != TrackerMode.pnp:
             e_res = track_essential(pi, pj, mask, Kd, cfg, gens)
             scale, scale_ok = essential_scale(e_res.R, e_res.t, pi, pj, mask, depth, Kd, cfg, gens, depth_next)
         t2 = time.perf_counter()
-        shared = {"time_selection": (t1 - t0) / B, "time_e_tracker": (t2 - t1) / B}
         results = []
         for b in range(B):
             tb = time.perf_counter()
             res = self._finish_frame(b, corr, pi, pj, mask, depth, depth_next, Kd, e_res, scale, scale_ok, gens[b])
-            res.diagnostics.update(shared)
-            res.diagnostics["time_sequential"] = time.perf_counter() - tb
+            res.diagnostics.time_selection = (t1 - t0) / B
+            res.diagnostics.time_e_tracker = (t2 - t1) / B
+            res.diagnostics.time_sequential = time.perf_counter() - tb
             results.append(res)
         return results
 
@@ -151,55 +163,59 @@ class VisualOdometry:
                       scale_ok: torch.Tensor | None, gen: torch.Generator) -> FrameResult:
         cfg = self.cfg
         sl = slice(b, b + 1)
-        diag: dict[str, Any] = {"frame": self.frame + 1, "tracker": None, "num_correspondences": int(mask[b].sum()),
-                                "num_inliers": 0, "gric_e": None, "gric_h": None, "scale": None,
-                                "fallback_reason": None, "cheirality_fraction": None, "pnp_success": None,
-                                "selection_failed": bool(corr.failed[b])}
+        diag = FrameDiagnostics(frame=self.frame + 1, num_correspondences=int(mask[b].sum()),
+                                selection_failed=bool(corr.failed[b]))
         if e_res is not None:
-            diag.update(gric_e=float(e_res.gric_e[b]), gric_h=float(e_res.gric_h[b]),
-                        cheirality_fraction=float(e_res.cheirality_fraction[b]))
-        T_j_i: torch.Tensor | None = None
+            gric_e, gric_h = float(e_res.gric_e[b]), float(e_res.gric_h[b])
+            diag.gric_e = gric_e if gric_e == gric_e else None  # NaN: GRIC not computed
+            diag.gric_h = gric_h if gric_h == gric_h else None
+            diag.cheirality_fraction = float(e_res.cheirality_fraction[b])
+        T_cur_prev: torch.Tensor | None = None
         if bool(corr.failed[b]):
-            diag["fallback_reason"] = f"selection failed: {corr.reasons[b]}"
-        elif cfg.tracker == "pnp":
-            T_j_i = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
+            diag.fallback_reason = f"selection failed: {corr.reasons[b]}"
+        elif cfg.mode == TrackerMode.pnp:
+            T_cur_prev = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
         else:
             reason = e_res.reasons[b]
             if reason is None:
-                T_j_i, reason = self._essential_pose(b, pi, pj, mask, depth, depth_next, K, e_res, scale, scale_ok,
-                                                     gen, diag)
-            if T_j_i is None:
-                diag["fallback_reason"] = reason
-                if cfg.tracker == "hybrid":
-                    T_j_i = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
-        if T_j_i is None:
+                T_cur_prev, reason = self._essential_pose(b, pi, pj, mask, depth, depth_next, K, e_res, scale,
+                                                          scale_ok, gen, diag)
+            if T_cur_prev is None:
+                diag.fallback_reason = reason
+                if cfg.mode == TrackerMode.hybrid:
+                    T_cur_prev = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
+        if T_cur_prev is None:
             T_prev_cur = self.last_motion.clone()
-            diag["tracker"] = "constant_motion"
+            diag.tracker = TrackerUsed.constant_motion
         else:
-            T_prev_cur = _inv(T_j_i)
+            T_prev_cur = _inv(T_cur_prev)
         self.T_w = self.T_w @ T_prev_cur
         self.last_motion = T_prev_cur
         self.last_scale = float(T_prev_cur[:3, 3].norm())
         self.frame += 1
-        return FrameResult(self.T_w.clone(), T_prev_cur, diag)
+        rows = mask[b]
+        inliers = e_res.inliers[b][rows] if e_res is not None and diag.tracker == TrackerUsed.essential else None
+        matches = FrameMatches(pi[b][rows], pj[b][rows], inliers)
+        return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches)
 
     def _essential_pose(self, b: int, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
                         depth_next: torch.Tensor | None, K: torch.Tensor, e_res: Any, scale: torch.Tensor,
                         scale_ok: torch.Tensor, gen: torch.Generator,
-                        diag: dict[str, Any]) -> tuple[torch.Tensor | None, str | None]:
+                        diag: FrameDiagnostics) -> tuple[torch.Tensor | None, str | None]:
         cfg = self.cfg
         sl = slice(b, b + 1)
         R, t = e_res.R[sl], e_res.t[sl]
         s, ok = float(scale[b]), bool(scale_ok[b])
-        diag["num_inliers"] = int(e_res.num_inliers[b])
-        if cfg.scale_method == "iterative":
-            z_cnn, z_ok = sample_depth(depth[sl], pi[sl], cfg.max_depth, cfg.depth_crop_top)
+        diag.num_inliers = int(e_res.num_inliers[b])
+        if cfg.scale.method == ScaleMethod.iterative:
+            z_cnn, z_ok = sample_depth(depth[sl], pi[sl], cfg.scale.max_depth, cfg.scale.depth_crop_top)
 
             def estimate(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-                if int(rows.sum()) <= cfg.min_correspondences:
+                if int(rows.sum()) <= cfg.essential.min_correspondences:
                     return R, t, torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.bool)
-                r = find_essential_ransac(pi[sl], pj[sl], rows, K[sl], threshold_px=cfg.e_threshold_px,
-                                          iterations=cfg.e_iterations, repeats=cfg.ransac_repeats, generators=[gen])
+                r = find_essential_ransac(pi[sl], pj[sl], rows, K[sl], threshold_px=cfg.essential.threshold_px,
+                                          iterations=cfg.essential.iterations, repeats=cfg.essential.repeats,
+                                          generators=[gen])
                 R2, t2, _ = decompose_essential(r.model, K[sl], pi[sl], pj[sl], rows)
                 s2, ok2 = essential_scale(R2, t2, pi[sl], pj[sl], rows, depth[sl], K[sl], cfg, [gen],
                                           None if depth_next is None else depth_next[sl])
@@ -213,23 +229,22 @@ class VisualOdometry:
                 R0, t0, s0 = T_prev[:, :3, :3], T_prev[:, :3, 3] / self.last_scale, self.last_scale
             s_it, R_it, t_it, ok_it, iters = iterative_scale(
                 pi[sl], pj[sl], mask[sl], z_cnn, z_ok, K[sl], R0, t0, s0, estimate,
-                max_iters=cfg.iterative_max_iters, tol=cfg.iterative_tol,
-                flow_threshold_px=cfg.iterative_flow_threshold_px)
-            diag["scale_iterations"] = iters
+                max_iters=cfg.scale.iterative_max_iters, tol=cfg.scale.iterative_tol,
+                flow_threshold_px=cfg.scale.iterative_flow_threshold_px)
+            diag.scale_iterations = iters
             if ok_it:
                 R, t, s, ok = R_it, t_it, s_it, True
         if not ok:
-            return None, f"scale recovery failed (<= {cfg.scale_min_points} usable depth points)"
-        diag.update(tracker="E", scale=s)
+            return None, f"scale recovery failed (<= {cfg.scale.min_points} usable depth points)"
+        diag.tracker, diag.scale = TrackerUsed.essential, s
         return pose_from_rt(R, s * t)[0], None
 
     def _pnp(self, sl: slice, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
-             K: torch.Tensor, gen: torch.Generator, diag: dict[str, Any]) -> torch.Tensor | None:
+             K: torch.Tensor, gen: torch.Generator, diag: FrameDiagnostics) -> torch.Tensor | None:
         T, ok, nin = track_pnp(pi[sl], pj[sl], mask[sl], depth[sl], K[sl], self.cfg, [gen])
-        diag.update(pnp_success=bool(ok[0]), num_inliers=int(nin[0]))
+        diag.pnp_success, diag.num_inliers = bool(ok[0]), int(nin[0])
         if not bool(ok[0]):
-            prev = diag.get("fallback_reason")
-            diag["fallback_reason"] = (f"{prev}; " if prev else "") + "PnP failed"
+            diag.add_reason("PnP failed")
             return None
-        diag.update(tracker="PnP", scale=float(T[0, :3, 3].norm()))
+        diag.tracker, diag.scale = TrackerUsed.pnp, float(T[0, :3, 3].norm())
         return T[0]

@@ -16,20 +16,21 @@ def track_pnp(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, dept
               cfg: TrackerConfig, generators: list[torch.Generator]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``T_cur_prev`` from PnP on (B,N,2) pixel pairs and the previous frame's depth (B,1,H,W).
 
-    Rows are used when selected and their depth lies in (0, max_depth] below the top ``depth_crop_top``.
+    Rows are used when selected and their depth lies in (0, ``cfg.scale.max_depth``] below the top
+    ``cfg.scale.depth_crop_top``.
     Each frame runs with its own generator (batched == unbatched).
 
     Returns:
         T_j_i (B,4,4) float64 (identity where it failed), success (B,) bool, num_inliers (B,) long.
     """
-    z, ok = sample_depth(depth_i, pts_i, cfg.max_depth, cfg.depth_crop_top)
+    z, ok = sample_depth(depth_i, pts_i, cfg.scale.max_depth, cfg.scale.depth_crop_top)
     rows = mask & ok
     X = backproject_points(pts_i.to(torch.float64), torch.where(rows, z, 1.0), K.to(torch.float64))
     Ts, succ, nin = [], [], []
     for b in range(pts_i.shape[0]):
         r = solve_pnp_ransac(X[b:b + 1], pts_j[b:b + 1].to(torch.float64), rows[b:b + 1], K[b:b + 1].to(torch.float64),
-                             threshold_px=cfg.pnp_threshold_px, iterations=cfg.pnp_iterations,
-                             repeats=cfg.ransac_repeats, min_points=cfg.pnp_min_points, generator=generators[b])
+                             threshold_px=cfg.pnp.threshold_px, iterations=cfg.pnp.iterations,
+                             repeats=cfg.pnp.repeats, min_points=cfg.pnp.min_points, generator=generators[b])
         Ts.append(r.T_j_i.to(torch.float64))
         succ.append(r.success)
         nin.append(r.num_inliers)

@@ -40,8 +40,6 @@ from dfvo.models.pose_net import PoseNet
 from dfvo.training.augment import DepthAugmentConfig, augment_depth_batch
 from dfvo.training.hparams import recorded_config
 
-MODEL_TYPE_KEY = "dfvo_model_type"
-
 
 def _get(cfg: Any, key: str, default: Any) -> Any:
     value = OmegaConf.select(cfg, key, default=default)
@@ -85,44 +83,23 @@ class DepthPoseModule(L.LightningModule):
         init_from = _get(m, "init_from", None)
         if init_from:
             self._init_weights_from(str(init_from))
-        self.save_hyperparameters({"cfg": recorded_config(cfg), MODEL_TYPE_KEY: self.model_type})
+        self.save_hyperparameters({"cfg": recorded_config(cfg)})
 
     def _init_weights_from(self, path: str) -> None:
         """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path``."""
         import logging
-        from pathlib import Path
 
-        from dfvo.sources.networks import CheckpointError, _read_state, load_weights
+        from dfvo.io.checkpoint import load_weights, read_state_dict
 
-        try:
-            load_weights(self.depth_net, path, "depth network DepthNet")
-        except CheckpointError as err:
-            raise CheckpointError(f"model.init_from={path}: {err}") from err
+        load_weights(self.depth_net, path, "depth network DepthNet", "model.init_from")
         if self.pose_net is None:
             return
-        state, _ = _read_state(Path(path), "depth network DepthNet")
+        state, _ = read_state_dict(path, "depth network DepthNet", "model.init_from")
         if not any(k.startswith("pose_net.") for k in state):
             logging.getLogger("dfvo.training").info("model.init_from=%s holds no PoseNet: the pose network starts "
                                                     "from random weights", path)
             return
-        try:
-            load_weights(self.pose_net, path, "pose network PoseNet")
-        except CheckpointError as err:
-            raise CheckpointError(f"model.init_from={path}: {err}") from err
-
-    # ---------------------------------------------------------------- checkpoints
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint[MODEL_TYPE_KEY] = self.model_type
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        found = checkpoint.get(MODEL_TYPE_KEY, checkpoint.get("hyper_parameters", {}).get(MODEL_TYPE_KEY))
-        if found is None:
-            raise ValueError(f"the checkpoint has no dfvo model type ({MODEL_TYPE_KEY!r}): it was written by an older "
-                             f"version of dfvo or by another program; train {self.model_type!r} without it, or use "
-                             "a checkpoint written by train.py")
-        if found != self.model_type:
-            raise ValueError(f"checkpoint holds model type {found!r}, but this run trains {self.model_type!r} "
-                             "(pick the matching model= or another ckpt_path)")
+        load_weights(self.pose_net, path, "pose network PoseNet", "model.init_from")
 
     # ---------------------------------------------------------------- forward
     def forward(self, image: torch.Tensor) -> torch.Tensor:

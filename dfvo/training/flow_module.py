@@ -21,6 +21,7 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from dfvo.io.checkpoint import load_weights
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe, occlusion_mask, self_supervised_flow_loss
 from dfvo.models.flow_net import FlowNet
 from dfvo.training.flow_viz import flow_to_color, scalar_to_color
@@ -34,57 +35,10 @@ def _get(cfg: Any, key: str, default: Any) -> Any:
     return default if value is None else value
 
 
-FLOW_WEIGHTS_EXPECTED = ("a Lightning .ckpt of a flow model written by train.py, or a .safetensors / torch.save-d "
-                         ".pt state dict of the FlowNet")
-
-
-def _load_failure(err: Exception) -> str:
-    """A one-line reason of a failed ``torch.load`` / ``load_file`` (torch's weights-only message is long and
-    suggests ``weights_only=False``; keep only the unpickler's reason)."""
-    text = str(err)
-    if "WeightsUnpickler error:" in text:
-        text = text.split("WeightsUnpickler error:", 1)[1]
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return f"{type(err).__name__}: {lines[0] if lines else 'unreadable'}"
-
-
 def load_flow_weights(net: FlowNet, path: str | Path, setting: str = "model.init_from") -> None:
-    """Load FlowNet weights from a Lightning checkpoint of :class:`FlowModule`, a ``.safetensors`` file or a
-    ``torch.save``-d state dict.
-
-    Every error names ``setting`` (the config key the path came from), the path and what was expected.
-
-    Raises:
-        FileNotFoundError: ``path`` is not a file.
-        ValueError: the file cannot be read (junk, truncated) or holds no state dict.
-        KeyError: the tensors do not match this network variant.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{setting}={path}: does not exist (expected {FLOW_WEIGHTS_EXPECTED})")
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-            state: Any = load_file(str(path))
-        else:
-            state = torch.load(path, map_location="cpu", weights_only=True)  # tensors and plain containers only
-    except Exception as err:  # UnpicklingError, EOFError, SafetensorError, RuntimeError: all mean "unreadable"
-        raise ValueError(f"{setting}={path}: cannot be read as flow weights ({_load_failure(err)}); "
-                         f"expected {FLOW_WEIGHTS_EXPECTED}") from err
-    if isinstance(state, dict):
-        state = state.get("state_dict", state)
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise ValueError(f"{setting}={path}: holds no state dict of tensors; expected {FLOW_WEIGHTS_EXPECTED}")
-    if any(k.startswith("net.") for k in state):
-        state = {k[4:]: v for k, v in state.items() if k.startswith("net.")}
-    try:
-        missing, unexpected = net.load_state_dict(state, strict=False)
-    except RuntimeError as err:  # shape mismatch: another variant
-        raise KeyError(f"{setting}={path}: tensor shapes do not match this network variant "
-                       f"(model.variant?): {str(err).splitlines()[1].strip()}") from None
-    if missing or unexpected:
-        raise KeyError(f"{setting}={path}: does not match the FlowNet variant (missing {missing[:3]}..., "
-                       f"unexpected {unexpected[:3]}...); expected {FLOW_WEIGHTS_EXPECTED}")
+    """Fill ``net`` from a weights file or a Lightning checkpoint of a flow model (see :mod:`dfvo.io.checkpoint`);
+    errors are :class:`~dfvo.io.checkpoint.CheckpointError` naming ``setting`` and the path."""
+    load_weights(net, path, "flow network FlowNet", setting)
 
 
 class FlowModule(L.LightningModule):

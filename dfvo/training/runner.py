@@ -22,13 +22,13 @@ from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelChec
 from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
+from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, load_training_checkpoint
 from dfvo.training.datamodule import DFVODataModule
 
 MODULES: dict[str, str] = {
     "depth": "dfvo.training.depth_module:DepthPoseModule",
     "flow": "dfvo.training.flow_module:FlowModule",
 }
-CKPT_KEY = "dfvo_run_model"
 REPO_ROOT = Path(__file__).resolve().parents[2]
 if not OmegaConf.has_resolver("dfvo_repo"):
     # ${dfvo_repo:} in the configs: the repository root, so data roots default to <repo>/../shared/data/...
@@ -75,33 +75,7 @@ class ModelIdentity(Callback):
         self.identity = identity
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
-        checkpoint[CKPT_KEY] = self.identity
-
-
-CKPT_EXPECTED = "a Lightning checkpoint written by train.py (runs/<name>/checkpoints/last.ckpt or best-*.ckpt)"
-
-
-def load_run_checkpoint(path: str | Path, setting: str = "ckpt_path") -> dict[str, Any]:
-    """Read the Lightning checkpoint at ``path``; any failure raises an error naming ``setting=path``.
-
-    Raises:
-        FileNotFoundError: ``path`` is not a file.
-        ValueError: the file cannot be read as a checkpoint (junk, truncated, another format) or is not a
-            Lightning checkpoint (no ``state_dict``).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{setting}={path}: no such checkpoint file (expected {CKPT_EXPECTED})")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # UnpicklingError, EOFError, RuntimeError (bad zip), ...: all mean "not a checkpoint"
-        raise ValueError(f"{setting}={path}: cannot be read as a checkpoint ({type(err).__name__}: {err}); "
-                         f"expected {CKPT_EXPECTED}") from err
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
-        found = f"a dict with keys {sorted(map(str, ckpt))[:6]}" if isinstance(ckpt, dict) else type(ckpt).__name__
-        raise ValueError(f"{setting}={path}: holds {found}, not a Lightning checkpoint (no 'state_dict'); "
-                         f"expected {CKPT_EXPECTED}")
-    return ckpt
+        checkpoint[MODEL_IDENTITY_KEY] = self.identity
 
 
 class LoggedStepAfterResume(Callback):
@@ -132,18 +106,9 @@ class LoggedStepAfterResume(Callback):
 
 
 def check_checkpoint(path: str | Path, cfg: DictConfig) -> None:
-    """Raise ``ValueError`` if the checkpoint at ``path`` cannot be read, has no dfvo model identity, or was
-    written for another model type than ``cfg.model`` (``FileNotFoundError`` if it does not exist)."""
-    ckpt = load_run_checkpoint(path, "ckpt_path")
-    found, expected = ckpt.get(CKPT_KEY), model_identity(cfg)
-    if found is None:
-        raise ValueError(f"ckpt_path={path}: the checkpoint has no dfvo model identity ({CKPT_KEY!r}): it was "
-                         f"written by an older version of dfvo or by another program, so it cannot be resumed as a "
-                         f"{expected!r} run. Start without ckpt_path (for a flow model, model.init_from={path} "
-                         f"starts from its weights), or resume from {CKPT_EXPECTED}")
-    if found != expected:
-        raise ValueError(f"ckpt_path={path} holds a {found!r} model, but this run is {expected!r}; pass the "
-                         "matching model= (or start without ckpt_path)")
+    """Raise :class:`CheckpointError` if the checkpoint at ``path`` is missing, cannot be read, has no dfvo model
+    identity, or was written for another model type than ``cfg.model``."""
+    load_training_checkpoint(path, "ckpt_path", identity=model_identity(cfg))
 
 
 def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:

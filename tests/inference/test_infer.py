@@ -134,8 +134,8 @@ def test_interrupted_run_leaves_a_valid_prefix(tmp_path: Path) -> None:
 @needs_stack
 def test_loud_warning_when_frames_fall_back(tmp_path: Path) -> None:
     # selection needs 1000 x 100 valid pixels, more than a 96x320 image has: every frame falls back
-    proc = run_infer(f"out_dir={tmp_path}", "data.num_frames=4", "correspondence.num_correspondences=100",
-                     "+correspondence.min_valid_fraction=1000", *SMALL, *ORACLE)
+    proc = run_infer(f"out_dir={tmp_path}", "data.num_frames=4", "tracker.correspondence.num_correspondences=100",
+                     "tracker.correspondence.min_valid_fraction=1000", *SMALL, *ORACLE)
     assert "WARNING: 3/3 frames (100%) fell back to constant motion" in proc.stderr
     rows = list(csv.DictReader((tmp_path / "frames.csv").open()))
     assert [r["constant_motion"] for r in rows[1:]] == ["1", "1", "1"]
@@ -143,16 +143,36 @@ def test_loud_warning_when_frames_fall_back(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "summary.json").read_text())["fallback"]["warn"] is True
 
 
-def test_unknown_tracker_setting_is_an_error() -> None:
-    from dfvo.inference.pipeline import tracker_config
+def compose_infer(*overrides: str):
+    from hydra import compose, initialize_config_module
 
-    cfg = OmegaConf.create({"tracker": {"name": "e", "tracker": "e"}, "correspondence": {"selction_method": "x"},
-                            "scale": {"scale_method": "iterative"}, "model_selection": {}})
-    with pytest.raises(ValueError, match="conf/correspondence: unknown tracker setting 'selction_method'"):
-        tracker_config(cfg)
-    cfg.correspondence = {"selection_method": "best_n", "grid": [4, 5]}
-    tc = tracker_config(cfg)
-    assert (tc.tracker, tc.selection_method, tc.scale_method, tc.grid) == ("e", "best_n", "iterative", (4, 5))
+    from dfvo.inference.config import register_configs
+
+    register_configs()
+    with initialize_config_module("dfvo.conf.infer", version_base="1.3"):
+        return compose("infer", overrides=list(overrides))
+
+
+def test_tracker_node_is_typed_and_unknown_settings_are_errors() -> None:
+    """One ``tracker`` node: the groups choose into it, overrides are type-checked, typos are errors."""
+    from hydra.errors import ConfigCompositionException
+    from omegaconf.errors import ConfigKeyError
+
+    from dfvo.inference.config import InferConfig, typed
+    from dfvo.tracking.config import ScaleMethod, SelectionMethod, TrackerMode
+
+    cfg = compose_infer("tracker=e", "correspondence=best_n", "scale=iterative", "tracker.correspondence.grid=[4,5]")
+    icfg = typed(cfg)
+    assert isinstance(icfg, InferConfig)
+    tc = icfg.tracker
+    assert (tc.mode, tc.correspondence.method, tc.scale.method, tc.correspondence.grid) == (
+        TrackerMode.e, SelectionMethod.best_n, ScaleMethod.iterative, [4, 5])
+    assert tc.scale.depth_views == 2  # the default infer.py runs, written once in the dataclass
+    assert typed(compose_infer("experiment=paper")).tracker.scale.depth_views == 1
+    with pytest.raises((ConfigCompositionException, ConfigKeyError), match="selction_method"):
+        compose_infer("tracker.correspondence.selction_method=best_n")
+    with pytest.raises(ConfigCompositionException):
+        compose_infer("tracker.mode=magic")
 
 
 def test_wrong_checkpoint_path_errors_clearly(tmp_path: Path) -> None:
@@ -219,11 +239,11 @@ def test_network_flow_roundtrip_matches_model(tmp_path: Path) -> None:
 
 @needs_stack
 def test_two_view_scale_gets_each_pairs_later_depth_across_batches(tmp_path: Path) -> None:
-    """scale.scale_depth_views=2: the loop hands the tracker frame i+1's depth for pair (i, i+1), carried over
+    """tracker.scale.depth_views=2: the loop hands the tracker frame i+1's depth for pair (i, i+1), carried over
     batch boundaries and into a last partial batch (10 frames, batches of 2 pairs); with the true depth any
     off-by-one frame would bias the geometric mean of the two scales and the RPE of the E-tracker's frames."""
     n = 10
-    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "batch_size=2", "scale.scale_depth_views=2",
+    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "batch_size=2", "tracker.scale.depth_views=2",
               *SMALL, *ORACLE)
     gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()
     t_err, _ = relative_errors(gt, read_poses(tmp_path / "synthetic_drive_s0.txt"))
@@ -252,11 +272,11 @@ def test_oracle_sources_return_world_truth_and_refuse_real_data() -> None:
 
 
 def test_kitti_odom_command_reads_sequence_and_refuses_oracle(kitti_odom_root: Path, tmp_path: Path) -> None:
+    from dfvo.inference.config import KittiOdomDataConfig
     from dfvo.inference.frames import build_sequence
 
-    data = OmegaConf.load(REPO / "dfvo/conf/infer/data/kitti_odom.yaml")
-    data.root = str(kitti_odom_root)
-    seq = build_sequence(data, "06", OmegaConf.create({"height": 192, "width": 640}))
+    seq = build_sequence(KittiOdomDataConfig(root=str(kitti_odom_root)), "06",
+                         OmegaConf.create({"height": 192, "width": 640}))
     assert seq.name == "06" and seq.length == 51 and seq.poses.shape == (51, 4, 4)
     assert seq.image(0).shape == (3, 192, 640)
     proc = run_infer("data=kitti_odom", f"data.root={kitti_odom_root}", "seq=06", f"out_dir={tmp_path}",
@@ -267,13 +287,17 @@ def test_kitti_odom_command_reads_sequence_and_refuses_oracle(kitti_odom_root: P
 @needs_stack
 def test_tiny_multirun_and_ablation_table(tmp_path: Path) -> None:
     sweep = tmp_path / "sweep"
-    run_infer("-m", "correspondence=local_best_k,best_n", "data.num_frames=4", f"hydra.sweep.dir={sweep}", *SMALL,
+    run_infer("-m", "correspondence=local_best_k,best_n", "data.num_frames=4", f"out_dir={sweep}", *SMALL,
               *ORACLE, timeout=180)
     summaries = sorted(sweep.rglob("summary.json"))
     assert len(summaries) == 2
+    # each job its own folder under out_dir, named by its overrides (out_dir and run settings excluded)
+    assert {p.parent.name.split(",")[0] for p in summaries} == {"correspondence=best_n",
+                                                                "correspondence=local_best_k"}
+    assert all((p.parent / "infer.log").is_file() for p in summaries)
     recorded = json.loads(summaries[0].read_text())["overrides"]  # the sweep's non-group overrides, as Hydra saw them
     assert recorded["data.num_frames"] == "4" and recorded["img_res.height"] == str(H)
-    assert not {"progress", "num_threads", "hydra.sweep.dir", "correspondence", "flow", "depth"} & set(recorded)
+    assert not {"progress", "num_threads", "out_dir", "correspondence", "flow", "depth"} & set(recorded)
     assert all(len(read_poses(p.parent / "synthetic_drive_s0.txt")) == 4 for p in summaries)
     out = subprocess.run([sys.executable, "scripts/aggregate_ablation.py", str(sweep)], cwd=REPO,
                          capture_output=True, text=True, check=True).stdout
@@ -368,16 +392,17 @@ def test_folder_and_kitti_raw_sequences(tmp_path: Path, kitti_raw_root: Path) ->
 
     for k in range(3):
         Image.fromarray(np.full((40, 80, 3), 60 * k, np.uint8)).save(tmp_path / f"f{k}.png")
-    data = OmegaConf.load(REPO / "dfvo/conf/infer/data/folder.yaml")
-    data.root, data.fx, data.fy, data.cx, data.cy, data.start = str(tmp_path), 100.0, 100.0, 39.5, 19.5, 1
+    from dfvo.inference.config import FolderDataConfig, KittiRawDataConfig
+
+    data = FolderDataConfig(root=str(tmp_path), fx=100.0, fy=100.0, cx=39.5, cy=19.5, start=1)
     seq = build_sequence(data, None, OmegaConf.create({"height": 20, "width": 40}))
     assert seq.length == 2 and seq.poses is None and seq.world is None
     torch.testing.assert_close(seq.image(1), torch.full((3, 20, 40), 120 / 255))  # frame 2 of the folder
     torch.testing.assert_close(seq.K, torch.tensor([[50.0, 0, 19.5], [0, 50.0, 9.5], [0, 0, 1]]))
     with pytest.raises(ValueError, match="data.fx"):
-        build_sequence(OmegaConf.merge(data, {"fx": None}), None, OmegaConf.create({"height": 20, "width": 40}))
-    raw = OmegaConf.load(REPO / "dfvo/conf/infer/data/kitti_raw.yaml")
-    raw.root, raw.end = str(kitti_raw_root.parent), 5
+        build_sequence(FolderDataConfig(root=str(tmp_path), fy=100.0, cx=39.5, cy=19.5), None,
+                       OmegaConf.create({"height": 20, "width": 40}))
+    raw = KittiRawDataConfig(root=str(kitti_raw_root.parent), end=5)
     seq = build_sequence(raw, "2011_09_26_drive_0001", OmegaConf.create({"height": 192, "width": 640}))
     assert seq.name == "2011_09_26_drive_0001_sync" and seq.length == 5 and seq.image(4).shape == (3, 192, 640)
 
@@ -448,7 +473,9 @@ def test_bad_out_dir_fails_first_naming_it(tmp_path: Path, monkeypatch: pytest.M
     afile = tmp_path / "afile"
     afile.write_text("x")
     with pytest.raises(NotADirectoryError, match=rf"out_dir={afile / 'out'}: .*{afile} is a file"):
-        pipeline.run_inference(OmegaConf.create({"out_dir": str(afile / "out")}))
+        from dfvo.inference.config import InferConfig, SyntheticDataConfig
+
+        pipeline.run_inference(InferConfig(data=SyntheticDataConfig(), out_dir=str(afile / "out")))
     with pytest.raises(NotADirectoryError, match=rf"out_dir={afile}: "):
         pipeline.prepare_out_dir(afile)
     with pytest.raises(ValueError, match="out_dir is not set"):
@@ -513,14 +540,16 @@ def test_default_run_uses_the_shipped_checkpoints(tmp_path: Path) -> None:
 
 
 def test_flow_refinement_settings(tmp_path: Path) -> None:
-    """``flow.refine.iterations=0`` runs the network flow as it is; an unknown refine key is an error naming it."""
-    from dfvo.inference.pipeline import flow_refinement_config
+    """``flow.refine.iterations=0`` runs the network flow as it is; an unknown refine key or a bad value is an
+    error naming it."""
+    from hydra.errors import ConfigCompositionException
 
-    assert flow_refinement_config(OmegaConf.create({"refine": {"iterations": 0}})) is None
-    assert flow_refinement_config(OmegaConf.create({})) is None
-    assert flow_refinement_config(OmegaConf.create({"refine": {"iterations": 2}})).iterations == 2
-    with pytest.raises(ValueError, match=r"flow.refine: unknown setting\(s\) \['windw'\]"):
-        flow_refinement_config(OmegaConf.create({"refine": {"windw": 3}}))
+    from dfvo.inference.config import typed
+
+    with pytest.raises(ConfigCompositionException, match="windw"):
+        compose_infer("flow.refine.windw=3")
+    with pytest.raises(ValueError, match="flow.refine.window=4"):
+        typed(compose_infer("flow.refine.window=4"))
     run_infer(f"out_dir={tmp_path}", "data.num_frames=3", "flow.refine.iterations=0", *SMALL)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["sources"]["flow"] == "network" and summary["sources"]["flow_refinement"] is None

@@ -46,14 +46,13 @@ def test_flip_averaged_depth_is_mirror_equivariant(tmp_path: Path) -> None:
 
 
 def test_flip_average_setting_reaches_the_depth_source(tmp_path: Path) -> None:
-    from omegaconf import OmegaConf
     from safetensors.torch import save_file
 
     from dfvo.models.depth_net import DepthNet
-    from dfvo.sources import build_depth_source
+    from dfvo.sources import DepthSourceConfig, build_depth_source
 
     path = tmp_path / "depth.safetensors"
     save_file({k: v.contiguous() for k, v in DepthNet().state_dict().items()}, str(path))
     for flag in (True, False):
-        cfg = OmegaConf.create({"source": "network", "checkpoint": str(path), "flip_average": flag})
+        cfg = DepthSourceConfig(source="network", checkpoint=str(path), flip_average=flag)
         assert build_depth_source(cfg).flip_average is flag

@@ -5,8 +5,13 @@ import torch
 
 from dfvo.data.synthetic import SyntheticWorld
 from dfvo.tracking import TrackerConfig, VisualOdometry
+from dfvo.tracking.config import ScaleConfig
 
 torch.set_num_threads(1)
+
+def make_cfg(tracker: str = "hybrid", scale_method: str = "simple", depth_views: int = 1, **scale) -> TrackerConfig:
+    """A tracker configuration; one-view scale unless asked (these sequences pass the earlier frames' depth only)."""
+    return TrackerConfig(mode=tracker, scale=ScaleConfig(method=scale_method, depth_views=depth_views, **scale))
 
 
 def sequence(scenario: str, num_frames: int, seed: int = 0):
@@ -33,33 +38,33 @@ def drive():
 
 def test_oracle_sequence_reproduces_true_poses(drive):
     w, ff, fb, d = drive
-    res = VisualOdometry(TrackerConfig()).run(ff, fb, d, w.intrinsics(), batch_size=4)
+    res = VisualOdometry(make_cfg()).run(ff, fb, d, w.intrinsics(), batch_size=4)
     assert len(res) == len(w) - 1
     assert rpe(w.poses(), res).max() < 1e-3
     P = w.poses()
     final = torch.linalg.inv(P[0]) @ P[-1]
     assert (res[-1].T_w_cur[:3, 3] - final[:3, 3]).norm() < 1e-2
     diag = res[0].diagnostics
-    for key in ("tracker", "num_correspondences", "num_inliers", "gric_e", "gric_h", "scale", "fallback_reason"):
-        assert key in diag
+    assert diag.frame == 1 and diag.num_correspondences > 1000 and diag.num_inliers > 100
+    assert diag.gric_e is not None and diag.gric_h is not None and diag.fallback_reason is None
     names = w.segment_names()
     # straight driving has parallax: E; the sharp turn is low-parallax for GRIC (far points fit H), so PnP
-    assert all(r.diagnostics["tracker"] == "E" for k, r in enumerate(res) if names[k + 1] == "drive" and k < 3)
-    assert all(r.diagnostics["tracker"] in ("E", "PnP") for r in res)
+    assert all(r.diagnostics.tracker == "E" for k, r in enumerate(res) if names[k + 1] == "drive" and k < 3)
+    assert all(r.diagnostics.tracker in ("E", "PnP") for r in res)
 
 
 def test_batched_run_equals_streaming_steps_and_is_stable(drive):
     w, ff, fb, d = drive
     n = 6
     K = w.intrinsics()
-    batched = VisualOdometry(TrackerConfig()).run(ff[:n], fb[:n], d[:n], K, batch_size=3)
-    again = VisualOdometry(TrackerConfig()).run(ff[:n], fb[:n], d[:n], K, batch_size=3)
-    vo = VisualOdometry(TrackerConfig())
+    batched = VisualOdometry(make_cfg()).run(ff[:n], fb[:n], d[:n], K, batch_size=3)
+    again = VisualOdometry(make_cfg()).run(ff[:n], fb[:n], d[:n], K, batch_size=3)
+    vo = VisualOdometry(make_cfg())
     stream = [vo.step(ff[k:k + 1], fb[k:k + 1], d[k:k + 1], K[None]) for k in range(n)]
     for a, b, c in zip(batched, stream, again, strict=True):
         assert torch.allclose(a.T_w_cur, b.T_w_cur, atol=1e-9)
         assert torch.equal(a.T_w_cur, c.T_w_cur)
-        assert a.diagnostics["num_inliers"] == b.diagnostics["num_inliers"]
+        assert a.diagnostics.num_inliers == b.diagnostics.num_inliers
     vo.reset()
     first = vo.step(ff[:1], fb[:1], d[:1], K[None])
     assert torch.allclose(first.T_w_cur, batched[0].T_w_cur, atol=1e-9)
@@ -68,41 +73,41 @@ def test_batched_run_equals_streaming_steps_and_is_stable(drive):
 @pytest.mark.parametrize("scenario", ["rotation", "planar"])
 def test_degenerate_pairs_choose_pnp_by_gric(scenario):
     w, ff, fb, d = sequence(scenario, 4)
-    res = VisualOdometry(TrackerConfig()).run(ff, fb, d, w.intrinsics())
+    res = VisualOdometry(make_cfg()).run(ff, fb, d, w.intrinsics())
     for r in res:
-        assert r.diagnostics["tracker"] == "PnP", r.diagnostics
-        assert r.diagnostics["gric_e"] > r.diagnostics["gric_h"]
-        assert "GRIC" in r.diagnostics["fallback_reason"]
+        assert r.diagnostics.tracker == "PnP", r.diagnostics
+        assert r.diagnostics.gric_e > r.diagnostics.gric_h
+        assert "GRIC" in r.diagnostics.fallback_reason
     assert rpe(w.poses(), res).max() < 1e-3
 
 
 def test_standing_still_gives_no_spurious_translation():
     w, ff, fb, d = sequence("still", 4)
-    res = VisualOdometry(TrackerConfig()).run(ff, fb, d, w.intrinsics())
+    res = VisualOdometry(make_cfg()).run(ff, fb, d, w.intrinsics())
     for r in res:
         assert r.T_prev_cur[:3, 3].norm() < 1e-3
-        assert r.diagnostics["tracker"] != "E"
+        assert r.diagnostics.tracker != "E"
 
 
 def test_black_frame_fails_selection_and_uses_constant_motion(drive):
     w, ff, fb, d = drive
     K = w.intrinsics()[None]
-    vo = VisualOdometry(TrackerConfig())
+    vo = VisualOdometry(make_cfg())
     first = vo.step(ff[:1], fb[:1], d[:1], K)
     # a black current frame: the network's backward flow is noise, nothing is forward-backward consistent
     noise = torch.randn(fb[1:2].shape, generator=torch.Generator().manual_seed(0)) * 5.0
     black = vo.step(ff[1:2], noise, d[1:2], K)
-    assert black.diagnostics["tracker"] == "constant_motion"
-    assert black.diagnostics["selection_failed"]
-    assert "selection failed" in black.diagnostics["fallback_reason"]
+    assert black.diagnostics.tracker == "constant_motion"
+    assert black.diagnostics.selection_failed
+    assert "selection failed" in black.diagnostics.fallback_reason
     assert torch.equal(black.T_prev_cur, first.T_prev_cur)
     assert torch.allclose(black.T_w_cur, first.T_w_cur @ first.T_prev_cur)
 
 
 def test_pnp_only_tracker_is_exact(drive):
     w, ff, fb, d = drive
-    res = VisualOdometry(TrackerConfig(tracker="pnp")).run(ff[:3], fb[:3], d[:3], w.intrinsics())
-    assert all(r.diagnostics["tracker"] == "PnP" for r in res)
+    res = VisualOdometry(make_cfg(tracker="pnp")).run(ff[:3], fb[:3], d[:3], w.intrinsics())
+    assert all(r.diagnostics.tracker == "PnP" for r in res)
     assert rpe(w.poses(), res).max() < 1e-3
 
 
@@ -117,7 +122,7 @@ def test_bad_inputs_raise():
 @pytest.mark.slow
 def test_full_drive_with_iterative_scale():
     w, ff, fb, d = sequence("drive", 100)
-    res = VisualOdometry(TrackerConfig(scale_method="iterative")).run(ff, fb, d, w.intrinsics(), batch_size=8)
+    res = VisualOdometry(make_cfg(scale_method="iterative")).run(ff, fb, d, w.intrinsics(), batch_size=8)
     names = w.segment_names()
     err = rpe(w.poses(), res)
     static = torch.tensor([names[k] != "moving_car" and names[k + 1] != "moving_car" for k in range(len(res))])
@@ -137,15 +142,15 @@ def test_two_view_scale_cancels_opposite_depth_scale_errors(drive):
     d_next = torch.stack([w.render(k + 1)["depth"] for k in range(n)])
     K, P = w.intrinsics(), w.poses()
     true_len = torch.stack([(torch.linalg.inv(P[k]) @ P[k + 1])[:3, 3].norm() for k in range(n)])
-    one = VisualOdometry(TrackerConfig(tracker="e")).run(ff[:n], fb[:n], 1.2 * d[:n], K, batch_size=n,
+    one = VisualOdometry(make_cfg(tracker="e")).run(ff[:n], fb[:n], 1.2 * d[:n], K, batch_size=n,
                                                          depths_next=d_next / 1.2)  # ignored with one view
-    two = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2)).run(
+    two = VisualOdometry(make_cfg(tracker="e", depth_views=2)).run(
         ff[:n], fb[:n], 1.2 * d[:n], K, batch_size=n, depths_next=d_next / 1.2)
-    assert all(r.diagnostics["tracker"] == "E" for r in one + two)
+    assert all(r.diagnostics.tracker == "E" for r in one + two)
     len_one = torch.stack([r.T_prev_cur[:3, 3].norm() for r in one])
     assert torch.allclose(len_one / true_len, torch.full((n,), 1.2, dtype=torch.float64), atol=2e-3)
     assert rpe(P, two).max() < 1e-3
-    vo = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2))  # streaming gives the same
+    vo = VisualOdometry(make_cfg(tracker="e", depth_views=2))  # streaming gives the same
     stream = [vo.step(ff[k:k + 1], fb[k:k + 1], 1.2 * d[k:k + 1], K[None], depth_cur=d_next[k:k + 1] / 1.2)
               for k in range(n)]
     for a, b in zip(two, stream, strict=True):
@@ -158,12 +163,12 @@ def test_two_view_scale_keeps_the_earlier_view_when_the_views_disagree(drive):
     w, ff, fb, d = drive
     n = 2
     d_next = torch.stack([w.render(k + 1)["depth"] for k in range(n)])
-    res = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2)).run(
+    res = VisualOdometry(make_cfg(tracker="e", depth_views=2)).run(
         ff[:n], fb[:n], d[:n], w.intrinsics(), batch_size=n, depths_next=d_next / 2)
-    assert all(r.diagnostics["tracker"] == "E" for r in res)
+    assert all(r.diagnostics.tracker == "E" for r in res)
     assert rpe(w.poses(), res).max() < 1e-3
-    with pytest.raises(ValueError, match="scale_views_max_ratio"):
-        TrackerConfig(scale_views_max_ratio=1.0)
+    with pytest.raises(ValueError, match="views_max_ratio"):
+        make_cfg(views_max_ratio=1.0)
 
 
 def test_two_view_scale_uses_the_later_view_alone_when_the_earlier_fails(drive):
@@ -173,17 +178,17 @@ def test_two_view_scale_uses_the_later_view_alone_when_the_earlier_fails(drive):
     n = 2
     d_next = torch.stack([w.render(k + 1)["depth"] for k in range(n)])
     zero = torch.zeros_like(d[:n])
-    one = VisualOdometry(TrackerConfig(tracker="e")).run(ff[:n], fb[:n], zero, w.intrinsics(), batch_size=n)
-    assert all(r.diagnostics["tracker"] == "constant_motion" for r in one)
-    two = VisualOdometry(TrackerConfig(tracker="e", scale_depth_views=2)).run(
+    one = VisualOdometry(make_cfg(tracker="e")).run(ff[:n], fb[:n], zero, w.intrinsics(), batch_size=n)
+    assert all(r.diagnostics.tracker == "constant_motion" for r in one)
+    two = VisualOdometry(make_cfg(tracker="e", depth_views=2)).run(
         ff[:n], fb[:n], zero, w.intrinsics(), batch_size=n, depths_next=d_next)
-    assert all(r.diagnostics["tracker"] == "E" for r in two)
+    assert all(r.diagnostics.tracker == "E" for r in two)
     assert rpe(w.poses(), two).max() < 1e-3
 
 
 def test_two_view_scale_needs_the_later_depth(drive):
     w, ff, fb, d = drive
-    with pytest.raises(ValueError, match="scale_depth_views=2"):
-        VisualOdometry(TrackerConfig(scale_depth_views=2)).run(ff[:2], fb[:2], d[:2], w.intrinsics())
-    with pytest.raises(ValueError, match="scale_depth_views"):
-        TrackerConfig(scale_depth_views=3)
+    with pytest.raises(ValueError, match="depth_views=2"):
+        VisualOdometry(make_cfg(depth_views=2)).run(ff[:2], fb[:2], d[:2], w.intrinsics())
+    with pytest.raises(ValueError, match="depth_views"):
+        make_cfg(depth_views=3)

@@ -6,9 +6,14 @@ import torch
 from dfvo.geometry.camera import project_points, transform_points
 from dfvo.geometry.se3 import pose_from_axis_angle
 from dfvo.tracking import TrackerConfig, VisualOdometry
+from dfvo.tracking.config import ScaleConfig
 from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depth
 
 torch.set_num_threads(1)
+
+def make_cfg(tracker: str = "hybrid", scale_method: str = "simple", depth_views: int = 1, **scale) -> TrackerConfig:
+    """A tracker configuration; one-view scale unless asked (these sequences pass the earlier frames' depth only)."""
+    return TrackerConfig(mode=tracker, scale=ScaleConfig(method=scale_method, depth_views=depth_views, **scale))
 
 
 def test_simple_scale_exact_with_outliers():
@@ -72,14 +77,14 @@ def test_iterative_scale_beats_simple_on_a_moving_car():
     T_before = torch.linalg.inv(P[k - 1]) @ P[k]
     errs = {}
     for method in ("simple", "iterative"):
-        vo = VisualOdometry(TrackerConfig(scale_method=method, tracker="e"))
+        vo = VisualOdometry(make_cfg(scale_method=method, tracker="e"))
         vo.last_motion, vo.last_scale = T_before, float(T_before[:3, 3].norm())  # streaming state so far
         res = vo.step(r["flow_fwd"][None], r["flow_bwd"][None], r["depth"][None], w.intrinsics()[None])
         errs[method] = float((res.T_prev_cur[:3, 3] - T_true[:3, 3]).norm())
     assert errs["iterative"] < 1e-3
     assert errs["simple"] > 10 * errs["iterative"], errs
     # the two-view scale (later frame's depth too) inside Algorithm 2's re-estimation keeps the truck rejected
-    vo = VisualOdometry(TrackerConfig(scale_method="iterative", tracker="e", scale_depth_views=2))
+    vo = VisualOdometry(make_cfg(scale_method="iterative", tracker="e", depth_views=2))
     vo.last_motion, vo.last_scale = T_before, float(T_before[:3, 3].norm())
     res = vo.step(r["flow_fwd"][None], r["flow_bwd"][None], r["depth"][None], w.intrinsics()[None],
                   depth_cur=w.render(k + 1)["depth"][None])
@@ -87,7 +92,7 @@ def test_iterative_scale_beats_simple_on_a_moving_car():
 
 
 def test_config_rejects_bad_values():
-    with pytest.raises(ValueError, match="scale_method"):
-        TrackerConfig(scale_method="magic")
+    with pytest.raises(ValueError, match="tracker.scale.method"):
+        make_cfg(scale_method="magic")
     with pytest.raises(ValueError, match="depth_crop_top"):
-        TrackerConfig(depth_crop_top=1.5)
+        make_cfg(depth_crop_top=1.5)

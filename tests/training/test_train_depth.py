@@ -10,7 +10,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from dfvo.training.runner import CKPT_KEY, NaNGuard, run_training
+from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, CheckpointError
+from dfvo.training.runner import NaNGuard, run_training
 
 REPO = Path(__file__).resolve().parents[2]
 TINY = ["data.height=64", "data.width=128", "data.batch_size=1", "data.val_num_frames=3",
@@ -39,7 +40,7 @@ def test_synthetic_few_steps(tmp_path: Path) -> None:
     assert {"train/loss", "train/photometric_s3", "train/consistency_s0", "val/abs_rel", "val/a1"} <= set(m)
     assert 0 < m["train/loss"] < 1 and 0 <= m["val/a1"] <= 1
     ckpt = torch.load(out["last_ckpt"], map_location="cpu", weights_only=False)
-    assert ckpt[CKPT_KEY] == "depth:depth_mono_sc"
+    assert ckpt[MODEL_IDENTITY_KEY] == "depth:depth_mono_sc"
     assert list((tmp_path / "syn" / "tb").glob("events.out.tfevents.*"))
     from dfvo.training.depth_module import DepthPoseModule
     loaded = DepthPoseModule.load_from_checkpoint(out["last_ckpt"], map_location="cpu").eval()
@@ -237,26 +238,19 @@ def test_unreadable_or_foreign_checkpoint_names_ckpt_path(tmp_path: Path) -> Non
     empty.write_bytes(b"")
     torch.save({"weight": torch.zeros(2)}, plain)
     for path in (junk, empty, plain):
-        with pytest.raises(ValueError, match=rf"ckpt_path={path}: .*Lightning checkpoint written by train.py"):
+        with pytest.raises(CheckpointError, match=rf"ckpt_path={path}: .*written by train.py"):
             check_checkpoint(path, cfg)
-    with pytest.raises(FileNotFoundError, match="ckpt_path=.*nowhere.ckpt"):
+    with pytest.raises(CheckpointError, match="ckpt_path=.*nowhere.ckpt: no such checkpoint file"):
         check_checkpoint(tmp_path / "nowhere.ckpt", cfg)
     old = tmp_path / "old.ckpt"
     torch.save({"state_dict": {}, "global_step": 3}, old)  # written before the model identity existed
-    with pytest.raises(ValueError, match=r"has no dfvo model identity \(.*older version of dfvo or by another"):
+    with pytest.raises(CheckpointError, match=r"has no dfvo model identity \(.*another program or an older dfvo"):
         check_checkpoint(old, cfg)
     res = subprocess.run([sys.executable, "train.py", "model=depth_stereo", "data=synthetic", "trainer.max_steps=1",
                           f"runs_dir={tmp_path}", "name=junk", f"ckpt_path={junk}", *TINY, *SYN], cwd=REPO,
                          capture_output=True, text=True, timeout=120)
     assert res.returncode != 0 and f"ckpt_path={junk}: cannot be read as a checkpoint" in res.stderr
     assert "UnpicklingError" in res.stderr
-
-
-def test_depth_module_names_a_checkpoint_without_model_type(tmp_path: Path) -> None:
-    from dfvo.training.depth_module import DepthPoseModule
-    module = DepthPoseModule(_cfg(tmp_path, "model=depth_mono"))
-    with pytest.raises(ValueError, match="has no dfvo model type .*older version of dfvo or by another program"):
-        module.on_load_checkpoint({"state_dict": {}, "hyper_parameters": {}})
 
 
 def test_init_from_loads_depth_weights_and_names_a_wrong_file(tmp_path: Path) -> None:
@@ -266,7 +260,6 @@ def test_init_from_loads_depth_weights_and_names_a_wrong_file(tmp_path: Path) ->
 
     from dfvo.models.depth_net import DepthNet
     from dfvo.models.flow_net import FlowNet
-    from dfvo.sources.networks import CheckpointError
     from dfvo.training.depth_module import DepthPoseModule
 
     torch.manual_seed(1)

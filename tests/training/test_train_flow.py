@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from torch.utils.data import DataLoader
 
 from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticWorld
+from dfvo.io.checkpoint import CheckpointError
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe
 from dfvo.matching.flow_warp import warp_by_flow
 from dfvo.models.flow_net import FlowNet
@@ -86,7 +87,7 @@ def test_flow_module_trains_and_logs_images(mode: str, tmp_path: Path) -> None:
 
 
 def test_load_flow_weights_errors(tmp_path: Path) -> None:
-    with pytest.raises(FileNotFoundError, match="init_from"):
+    with pytest.raises(CheckpointError, match="init_from"):
         load_flow_weights(FlowNet("tiny"), tmp_path / "missing.ckpt")
     torch.save(FlowNet("small").state_dict(), tmp_path / "small.pt")
     with pytest.raises(Exception, match="small.pt"):
@@ -151,11 +152,11 @@ def test_unreadable_init_from_names_the_setting(tmp_path: Path) -> None:
     junk_st.write_bytes(b"\xff" * 64)
     torch.save([1, 2, 3], listing)
     for path in (junk, empty, junk_st, listing):
-        with pytest.raises(ValueError, match=rf"model.init_from={path}: .*Lightning .ckpt of a flow model"):
+        with pytest.raises(ValueError, match=rf"model.init_from={path}: .*flow network"):
             load_flow_weights(FlowNet("tiny"), path)
         with pytest.raises(ValueError, match=rf"model.init_from={path}"):
             FlowModule(_cfg("self", tmp_path, init_from=str(path)))
-    with pytest.raises(FileNotFoundError, match="model.init_from=.*missing.ckpt"):
+    with pytest.raises(CheckpointError, match="model.init_from=.*missing.ckpt.* does not exist"):
         load_flow_weights(FlowNet("tiny"), tmp_path / "missing.ckpt")
 
 

@@ -1,0 +1,77 @@
+"""Settings of the flow and depth sources (the ``flow`` and ``depth`` nodes of ``infer.py``'s config).
+
+The dataclasses are the single home of the defaults; ``dfvo/conf/infer/flow/*.yaml`` and ``depth/*.yaml`` only
+choose ``source`` (and what differs from these defaults).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+from dfvo.matching.flow_refinement import FlowRefinementConfig
+
+__all__ = ["FlowSourceKind", "DepthSourceKind", "FlowSourceConfig", "DepthSourceConfig"]
+
+
+class FlowSourceKind(StrEnum):
+    """``auto``: the network when its checkpoint exists, else the oracle on synthetic data; ``network``: a trained
+    FlowNet; ``oracle``: the synthetic world's true flow; ``dis``: OpenCV's DIS (the classical baseline)."""
+
+    auto = "auto"
+    network = "network"
+    oracle = "oracle"
+    dis = "dis"
+
+
+class DepthSourceKind(StrEnum):
+    """``auto``: the network when its checkpoint exists, else the oracle on synthetic data; ``network``: a trained
+    DepthNet; ``oracle``: the synthetic world's true depth."""
+
+    auto = "auto"
+    network = "network"
+    oracle = "oracle"
+
+
+@dataclass
+class FlowSourceConfig:
+    """Where forward and backward flow come from.
+
+    Attributes:
+        source: see :class:`FlowSourceKind`.
+        checkpoint: network weights (``.safetensors``/``.pt``/``.ckpt``); a relative path is looked up in the working
+            folder, then among the package's shipped ``checkpoints/``.
+        variant: FlowNet variant; None: the checkpoint's metadata.
+        input_size: [h, w] the network runs at; None: the checkpoint's metadata, else the working size.
+        preset: ``dis`` only: OpenCV DIS preset ``ultrafast``, ``fast`` or ``medium``.
+        refine: photometric sub-pixel refinement applied to the network's flow (never to oracle or DIS flow).
+    """
+
+    source: FlowSourceKind = FlowSourceKind.auto
+    checkpoint: str = "checkpoints/flow.safetensors"
+    variant: str | None = None
+    input_size: list[int] | None = None
+    preset: str = "medium"
+    refine: FlowRefinementConfig = field(default_factory=FlowRefinementConfig)
+
+
+@dataclass
+class DepthSourceConfig:
+    """Where depth comes from.
+
+    Attributes:
+        source: see :class:`DepthSourceKind`.
+        checkpoint: network weights (see :class:`FlowSourceConfig`).
+        depth_scale: network depth → metres (1.0 for models trained with the true stereo baseline).
+        min_depth, max_depth: the network's depth range (metres).
+        input_size: [h, w] the network runs at; None: the checkpoint's metadata, else the working size.
+        flip_average: also run on the mirrored image and blend the inverse depths (2x depth time).
+    """
+
+    source: DepthSourceKind = DepthSourceKind.auto
+    checkpoint: str = "checkpoints/depth.safetensors"
+    depth_scale: float = 1.0
+    min_depth: float = 0.1
+    max_depth: float = 100.0
+    input_size: list[int] | None = None
+    flip_average: bool = False

@@ -1,0 +1,79 @@
+"""Per-frame diagnostics of the odometry loop: one schema read by ``frames.csv``, TensorBoard, the viewer and
+``summary.json`` alike."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from enum import StrEnum
+from typing import Any
+
+__all__ = ["TrackerUsed", "FrameDiagnostics", "DIAGNOSTIC_FIELDS"]
+
+
+class TrackerUsed(StrEnum):
+    """How a frame's pose was obtained. ``init``: frame 0 (identity); ``E``: essential matrix + scale; ``PnP``:
+    PnP on the earlier frame's depth; ``constant_motion``: the previous relative motion repeated (a fallback)."""
+
+    init = "init"
+    essential = "E"
+    pnp = "PnP"
+    constant_motion = "constant_motion"
+
+
+@dataclass
+class FrameDiagnostics:
+    """What the tracker did on one frame (frame index ``frame`` of its sequence; pairs are (frame-1, frame)).
+
+    Attributes:
+        tracker: :class:`TrackerUsed` (None while the frame is being tracked).
+        num_correspondences: selected correspondences; num_inliers: inliers of the model that was used.
+        gric_e, gric_h: GRIC scores of E and H (None when model selection is not GRIC or E did not run).
+        cheirality_fraction: fraction of the selected rows in front of both cameras under E's pose.
+        scale: length of the translation used (metres for metric depth).
+        scale_iterations: iterations of Algorithm 2 (iterative scale only).
+        pnp_success: PnP's result (None when PnP did not run).
+        selection_failed: too few consistent correspondences (constant motion).
+        fallback_reason: why the E-tracker's result was not used (None when it was).
+        time_selection, time_e_tracker, time_sequential: seconds spent on this frame by each tracker stage.
+    """
+
+    frame: int
+    tracker: TrackerUsed | None = None
+    num_correspondences: int = 0
+    num_inliers: int = 0
+    gric_e: float | None = None
+    gric_h: float | None = None
+    cheirality_fraction: float | None = None
+    scale: float | None = None
+    scale_iterations: int | None = None
+    pnp_success: bool | None = None
+    selection_failed: bool = False
+    fallback_reason: str | None = None
+    time_selection: float = 0.0
+    time_e_tracker: float = 0.0
+    time_sequential: float = 0.0
+
+    @property
+    def constant_motion(self) -> bool:
+        """The frame repeated the previous motion (no tracker gave a pose)."""
+        return self.tracker == TrackerUsed.constant_motion
+
+    @property
+    def pnp_failed(self) -> bool:
+        """PnP ran and failed."""
+        return self.pnp_success is False
+
+    def add_reason(self, reason: str) -> None:
+        """Append ``reason`` to ``fallback_reason`` ("; "-separated)."""
+        self.fallback_reason = f"{self.fallback_reason}; {reason}" if self.fallback_reason else reason
+
+    def as_row(self) -> dict[str, Any]:
+        """A flat dict of every field plus ``constant_motion`` and ``pnp_failed`` (enums as their values)."""
+        row = {f.name: getattr(self, f.name) for f in fields(self)}
+        row["tracker"] = self.tracker.value if self.tracker is not None else None
+        row["constant_motion"] = self.constant_motion
+        row["pnp_failed"] = self.pnp_failed
+        return row
+
+
+DIAGNOSTIC_FIELDS = [f.name for f in fields(FrameDiagnostics)] + ["constant_motion", "pnp_failed"]
