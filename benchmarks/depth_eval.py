@@ -1,6 +1,7 @@
 """Accuracy of a trained depth checkpoint (and of its untrained initialisation); prints JSON.
 
     python benchmarks/depth_eval.py runs/depth_stereo_cpu/checkpoints/last.ckpt [--kitti-odom ../shared/data/kitti_odom]
+        [--eigen-root KITTI_RAW --eigen-split eigen_test_files.txt]
 
 - Synthetic: Eigen metrics (abs rel, δ<1.25; raw = metric, and median-scaled) on the validation worlds of the run's
   config (true depth, sky and > 80 m excluded), for the checkpoint and for the same seed's untrained network.
@@ -8,6 +9,9 @@
   OpenCV semi-global matching on the rectified pair (a test-only dependency) turned into depth ``fx * b / d``,
   on the lower 70% of the image, 1-50 m, pixels whose disparity passes SGBM's uniqueness check. This reference
   is itself approximate (SGBM errors), so read it as a sanity check of the metric scale, not a benchmark.
+- KITTI Eigen split (``--eigen-root``, a KITTI raw root with velodyne scans; optional ``--eigen-split`` file): the
+  seven Eigen metrics of the checkpoint's depth network against projected LiDAR (:mod:`dfvo.eval.depth_eval`, Garg
+  crop, 1e-3..80 m), metric and median-scaled.
 """
 
 from __future__ import annotations
@@ -72,6 +76,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("checkpoint")
     p.add_argument("--kitti-odom", default=None, help="KITTI odometry root holding sequences/06 (optional)")
+    p.add_argument("--eigen-root", default=None, help="KITTI raw root with velodyne_points (optional)")
+    p.add_argument("--eigen-split", default=None, help="split file (default: every velodyne scan under the root)")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args()
     torch.set_num_threads(a.threads)
@@ -90,6 +96,16 @@ def main() -> None:
         out["kitti_before"] = kitti_stereo_median_error(init, a.kitti_odom, int(d.height), int(d.width), [0, 25, 50])
         out["kitti_after"] = kitti_stereo_median_error(trained, a.kitti_odom, int(d.height), int(d.width),
                                                        [0, 25, 50])
+    if a.eigen_root:
+        from dfvo.eval.depth_eval import evaluate_depth_task
+        for key, median in (("eigen_metric", False), ("eigen_median_scaled", True)):
+            res = evaluate_depth_task(OmegaConf.create({
+                "gt_dir": a.eigen_root, "depth": {"source": "network", "checkpoint": a.checkpoint,
+                                                  "split": a.eigen_split, "median_scaling": median,
+                                                  "network_min_depth": float(cfg.model.get("min_depth", 0.1)),
+                                                  "network_max_depth": float(cfg.model.get("max_depth", 100.0)),
+                                                  "input_size": [int(d.height), int(d.width)]}}))
+            out[key] = {**res["metrics"], "num_frames": res["num_frames"], "scale_median": res["scale"]["median"]}
     print(json.dumps(out))
 
 

@@ -12,6 +12,10 @@ lengths is the scale error itself. Prints one JSON object:
     - ``direction_error_deg``: median, mean and max angle between predicted and true translation directions.
 
     python benchmarks/error_decomposition.py --gt ../shared/data/kitti_odom/poses/06.txt --pred OUT/06.txt
+
+Any trajectory format that ``python -m dfvo.evaluate`` reads (KITTI 12/13, TUM, EuRoC; ``--format auto``); the two
+files are paired as there (timestamps, frame indices, or line by line; a prefix is accepted) and must pair up on
+consecutive frames.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dfvo.eval import evaluate_trajectory, read_kitti_poses  # noqa: E402
+from dfvo.eval import associate_trajectories, evaluate_trajectory, read_trajectory  # noqa: E402
 
 
 def relative(poses: np.ndarray) -> np.ndarray:
@@ -42,13 +46,21 @@ def compose(rel: np.ndarray) -> np.ndarray:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--gt", required=True, help="KITTI pose file of the ground truth")
-    p.add_argument("--pred", required=True, help="KITTI pose file of the prediction (same frames)")
+    p.add_argument("--gt", required=True, help="trajectory file of the ground truth")
+    p.add_argument("--pred", required=True, help="trajectory file of the prediction")
     p.add_argument("--align", default="6dof", choices=["6dof", "7dof", "scale", "none"])
+    p.add_argument("--format", default="auto", choices=["auto", "kitti", "tum", "euroc"])
+    p.add_argument("--max-time-diff", type=float, default=0.01, help="timestamp association tolerance (s)")
     args = p.parse_args()
-    gt, pred = read_kitti_poses(args.gt), read_kitti_poses(args.pred)
-    if len(gt) != len(pred):
-        raise SystemExit(f"{args.pred} has {len(pred)} poses, {args.gt} has {len(gt)}; expected the same frames")
+    try:
+        assoc = associate_trajectories(read_trajectory(args.gt, args.format), read_trajectory(args.pred, args.format),
+                                       args.max_time_diff, allow_prefix=True)
+    except (ValueError, FileNotFoundError) as err:
+        raise SystemExit(f"error: {err}") from None
+    rows = np.flatnonzero(assoc.valid)
+    if np.any(np.diff(rows) > 1):
+        raise SystemExit(f"{args.pred}: the predicted frames are not consecutive ({assoc.describe()})")
+    gt, pred = assoc.gt[rows], assoc.pred[rows]
     rg, rp = relative(gt), relative(pred)
     lg, lp = np.linalg.norm(rg[:, :3, 3], axis=1), np.linalg.norm(rp[:, :3, 3], axis=1)
     moving = lg > 1e-3
@@ -63,7 +75,7 @@ def main() -> None:
         return {"rpe_m": round(m["rpe_m"], 4), "rpe_deg": round(m["rpe_deg"], 4), "ate_m": round(m["ate_m"], 4)}
 
     print(json.dumps({
-        "gt": args.gt, "pred": args.pred, "align": args.align, "frames": len(gt),
+        "gt": args.gt, "pred": args.pred, "align": args.align, "frames": len(gt), "pairing": assoc.describe(),
         "as_run": summary(pred), "true_lengths": summary(compose(fixed)),
         "length_ratio": {"mean": round(float(ratio.mean()), 4), "median": round(float(np.median(ratio)), 4),
                          "std": round(float(ratio.std()), 4),

@@ -12,9 +12,11 @@ correspondences the tracker would use (local best-K with the official 0.1 px for
 
 Pairs with almost no translation (< 0.1 m) are skipped: F is undefined there. ``--refine-iterations N`` applies the
 pipeline's photometric refinement (``flow.refine``, N Gauss-Newton iterations; 0 = the network's flow as it is) to
-the forward and backward flows before everything is measured. Example:
+the forward and backward flows before everything is measured. ``--source dis`` measures OpenCV's DIS flow (the
+classical baseline of ``flow=dis``, preset ``--preset``) the same way. Examples:
 
     python benchmarks/kitti_flow_quality.py --checkpoint checkpoints/flow.safetensors --refine-iterations 0
+    python benchmarks/kitti_flow_quality.py --source dis --refine-iterations 0
 
 prints one JSON object.
 """
@@ -37,6 +39,8 @@ from dfvo.geometry.two_view import sampson_sq  # noqa: E402
 from dfvo.matching.consistency import forward_backward_inconsistency  # noqa: E402
 from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward  # noqa: E402
 from dfvo.matching.selection import select_correspondences  # noqa: E402
+from dfvo.sources import find_checkpoint  # noqa: E402
+from dfvo.sources.dis import DISFlow  # noqa: E402
 from dfvo.sources.networks import NetworkFlow  # noqa: E402
 
 
@@ -51,7 +55,10 @@ def fundamental_from_pose(T_i_j: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="flow checkpoint (.safetensors, or .ckpt / .pt state dict)")
+    p.add_argument("--source", choices=("network", "dis"), default="network", help="flow source (default network)")
+    p.add_argument("--checkpoint", default="checkpoints/flow.safetensors",
+                   help="--source network: flow checkpoint (.safetensors, or .ckpt / .pt state dict)")
+    p.add_argument("--preset", default="medium", help="--source dis: ultrafast | fast | medium")
     p.add_argument("--variant", default=None, help="FlowNet variant (default: from the checkpoint)")
     p.add_argument("--input-size", default=None, help="H,W the network runs at (default: checkpoint metadata)")
     p.add_argument("--root", default=str(Path(__file__).resolve().parents[2] / "shared/data/kitti_odom"))
@@ -64,7 +71,10 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     size = None if args.input_size is None else [int(v) for v in args.input_size.split(",")]
-    src = NetworkFlow(args.checkpoint, args.variant, input_size=size)
+    if args.source == "dis":
+        src = DISFlow(args.preset)
+    else:
+        src = NetworkFlow(find_checkpoint(args.checkpoint), args.variant, input_size=size)
     ds = KittiOdometry(args.root, args.seq, height=args.height, width=args.width, stereo=False)
     K = ds.intrinsics.double().numpy()
     H, W = args.height, args.width
@@ -113,7 +123,9 @@ def main() -> None:
         return round(float(torch.quantile(x[torch.randperm(len(x))[:1_000_000]], v)), 3) if len(x) else None
 
     print(json.dumps({
-        "checkpoint": args.checkpoint, "variant": src.variant, "network_input": src.input_size,
+        "source": args.source if args.source == "network" else f"dis ({args.preset})",
+        "checkpoint": args.checkpoint if args.source == "network" else None,
+        "variant": getattr(src, "variant", None), "network_input": getattr(src, "input_size", None),
         "sequence": args.seq, "pairs": len(pairs) - skipped, "skipped_static": skipped,
         "resolution": [H, W],
         "epipolar_px": {"median": q(epi_all, 0.5), "p90": q(epi_all, 0.9),

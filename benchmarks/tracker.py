@@ -49,12 +49,13 @@ def ours(pi, pj, K, z_true, cfg: TrackerConfig, threshold: float):
     mask = torch.ones(B, N, dtype=torch.bool)
     gens = [torch.Generator().manual_seed(b) for b in range(B)]
     t0 = time.perf_counter()
-    e = find_essential_ransac(pi, pj, mask, K, threshold_px=threshold, iterations=cfg.e_iterations,
-                              repeats=cfg.ransac_repeats, generators=gens)
+    e = find_essential_ransac(pi, pj, mask, K, threshold_px=threshold, iterations=cfg.essential.iterations,
+                              repeats=cfg.essential.repeats, generators=gens)
     t1 = time.perf_counter()
     R, t, front = decompose_essential(e.model, K, pi, pj, mask)
     t2 = time.perf_counter()
-    h = find_homography_ransac(pi, pj, mask, threshold_px=cfg.h_threshold_px, iterations=cfg.h_iterations,
+    ms = cfg.model_selection
+    h = find_homography_ransac(pi, pj, mask, threshold_px=ms.h_threshold_px, iterations=ms.h_iterations,
                                generators=gens)
     g_e, g_h = gric_essential(e.model, K, pi, pj, mask), gric_homography(h.model, pi, pj, mask)
     t3 = time.perf_counter()
@@ -95,19 +96,20 @@ def odometry(frames: int, batch: int) -> dict:
     ff = torch.stack([r["flow_fwd"] for r in rendered])
     fb = torch.stack([r["flow_bwd"] for r in rendered])
     d = torch.stack([r["depth"] for r in rendered])
+    d_next = torch.stack([w.render(i + 1, right=False, flow=False)["depth"] for i in range(len(w) - 1)])
     out = {}
     for bs in (1, batch):
         vo = VisualOdometry(TrackerConfig())
         t0 = time.perf_counter()
-        res = vo.run(ff, fb, d, w.intrinsics(), batch_size=bs)
+        res = vo.run(ff, fb, d, w.intrinsics(), batch_size=bs, depths_next=d_next)
         ms = 1000 * (time.perf_counter() - t0) / len(res)
         P = w.poses()
         err = torch.stack([(r.T_prev_cur[:3, 3] - (torch.linalg.inv(P[k]) @ P[k + 1])[:3, 3]).norm()
                            for k, r in enumerate(res)])
         out[f"batch_{bs}"] = {"ms_per_frame": ms, "rpe_m_max": float(err.max()),
-                              "trackers": sorted({r.diagnostics["tracker"] for r in res}),
+                              "trackers": sorted({r.diagnostics.tracker.value for r in res}),
                               "selection_ms_per_frame": 1000 * statistics.fmean(
-                                  r.diagnostics["time_selection"] for r in res)}
+                                  r.diagnostics.time_selection for r in res)}
     out["resolution"] = [w.height, w.width]
     return out
 
@@ -140,8 +142,8 @@ def main() -> None:
         "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
                     "torch_threads": torch.get_num_threads(), "torch": torch.__version__},
         "setup": {"frames": args.frames, "batch": args.batch, "points": args.points, "noise_px": args.noise,
-                  "outliers": args.outliers, "threshold_px": args.threshold, "ransac_repeats": cfg.ransac_repeats,
-                  "e_iterations_per_repeat": cfg.e_iterations, "scale": "simple", "model_selection": "gric"},
+                  "outliers": args.outliers, "threshold_px": args.threshold, "ransac_repeats": cfg.essential.repeats,
+                  "e_iterations_per_repeat": cfg.essential.iterations, "scale": "simple", "model_selection": "gric"},
         "dfvo": {"ms_per_frame": ms,
                  "stage_ms_per_frame": {k: statistics.fmean(st[k] for st in stages) for k in stages[0]},
                  "rot_err_deg": summary(rotation_error_deg(R, T[:, :3, :3])),

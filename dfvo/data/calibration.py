@@ -2,7 +2,7 @@
 
 Convention:
     - Every file is ``key: v1 v2 ...`` per line; lines whose values are not all numbers (``calib_time``) are
-      kept out of the numeric dictionary.
+      kept out of the numeric dictionary, but remembered: asking for such a key as a matrix names the line.
     - A rectified projection matrix is ``P = K [I | t]`` (3,4) where ``t`` moves points of the reference
       (rectified camera 0) frame into this camera. For a rectified stereo pair the baseline in metres is
       ``b = -(P_right[0,3] - P_left[0,3]) / fx`` and ``T_right_left`` is a translation ``(-b, 0, 0)``.
@@ -19,37 +19,62 @@ import torch
 from dfvo.data.image_io import DatasetError, require_file
 
 
-def read_calib_file(path: str | Path) -> dict[str, np.ndarray]:
-    """Parse a KITTI calibration file into ``{key: float64 vector}`` (non-numeric lines skipped).
+class CalibValues(dict):
+    """``{key: float64 vector}`` of a calibration file, remembering each key's line and the non-numeric lines.
+
+    Attributes:
+        path: the file. lines: ``{key: line number}`` of the numeric entries.
+        non_numeric: ``{key: (line number, text after the colon)}`` of lines whose values are not all numbers.
+    """
+
+    def __init__(self, path: Path) -> None:
+        super().__init__()
+        self.path = path
+        self.lines: dict[str, int] = {}
+        self.non_numeric: dict[str, tuple[int, str]] = {}
+
+
+def read_calib_file(path: str | Path) -> CalibValues:
+    """Parse a KITTI calibration file into ``{key: float64 vector}`` (non-numeric lines kept aside).
 
     Raises:
         DatasetNotFoundError: the file does not exist.
         DatasetError: the file holds no ``key: numbers`` line.
     """
     path = require_file(path, "calibration")
-    values: dict[str, np.ndarray] = {}
-    for line in path.read_text().splitlines():
+    values = CalibValues(path)
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
         key, sep, rest = line.partition(":")
         if not sep:
             continue
+        key = key.strip()
         try:
-            values[key.strip()] = np.array([float(tok) for tok in rest.split()], dtype=np.float64)
+            values[key] = np.array([float(tok) for tok in rest.split()], dtype=np.float64)
+            values.lines[key] = lineno
         except ValueError:
-            continue  # e.g. "calib_time: 09-Jan-2012 13:57:47"
+            values.non_numeric[key] = (lineno, rest.strip())  # e.g. "calib_time: 09-Jan-2012 13:57:47"
     if not values:
         raise DatasetError(f"calibration file {path} has no 'KEY: numbers' lines")
     return values
 
 
 def get_matrix(calib: dict[str, np.ndarray], key: str, shape: tuple[int, int], path: str | Path) -> np.ndarray:
-    """Entry ``key`` of a parsed calibration reshaped to ``shape``, with an error naming the file if absent."""
+    """Entry ``key`` of a parsed calibration reshaped to ``shape``, with an error naming the file (and line)."""
+    n = shape[0] * shape[1]
     if key not in calib:
+        bad = getattr(calib, "non_numeric", {}).get(key)
+        if bad is not None:
+            lineno, text = bad
+            raise DatasetError(f"calibration file {path} line {lineno}: '{key}:' is not {n} numbers "
+                               f"({shape[0]}x{shape[1]} matrix): {text[:60]!r}")
         raise DatasetError(f"calibration file {path} has no '{key}:' line (expected a {shape[0]}x{shape[1]} "
                            f"matrix; found keys {sorted(calib)})")
     vec = calib[key]
-    if vec.size != shape[0] * shape[1]:
-        raise DatasetError(f"calibration file {path}: '{key}' has {vec.size} numbers, expected "
-                           f"{shape[0] * shape[1]} ({shape[0]}x{shape[1]})")
+    if vec.size != n:
+        lineno = getattr(calib, "lines", {}).get(key)
+        at = f" line {lineno}" if lineno is not None else ""
+        raise DatasetError(f"calibration file {path}{at}: '{key}:' has {vec.size} numbers, expected "
+                           f"{n} ({shape[0]}x{shape[1]})")
     return vec.reshape(shape)
 
 

@@ -7,6 +7,7 @@ Layout::
     ROOT/sequences/SS/calib.txt            lines P0..P3 (3x4); only those of the cameras used are needed
     ROOT/sequences/SS/times.txt            one timestamp (s) per frame, optional
     ROOT/poses/SS.txt                      one row-major 3x4 T_w_c of the left camera per frame, optional
+                                           (12 numbers a line, or 13 with a leading frame index)
 
 Convention:
     - Samples follow :mod:`dfvo.data` keys: ``image`` (3,H,W) in [0,1] (gray replicated), ``K`` (3,3) at the
@@ -31,28 +32,9 @@ from dfvo.data.calibration import (
 )
 from dfvo.data.image_io import DatasetError, image_size, list_images, read_image, require_dir
 from dfvo.data.transforms import check_working_size, resize_with_intrinsics
+from dfvo.eval.trajectory_io import read_kitti_poses
 
 CAMERAS = {"color": ("image_2", "image_3", 2, 3), "gray": ("image_0", "image_1", 0, 1)}
-
-
-def read_pose_file(path: str | Path) -> np.ndarray:
-    """Read a KITTI pose file (12 numbers per line, row-major 3x4 T_w_c) as (N,4,4) float64."""
-    path = Path(path)
-    rows = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            vals = [float(tok) for tok in line.split()]
-        except ValueError as err:
-            raise DatasetError(f"pose file {path}, line {lineno}: expected 12 numbers ({err})") from err
-        if len(vals) != 12:
-            raise DatasetError(f"pose file {path}, line {lineno}: expected 12 numbers, found {len(vals)}")
-        rows.append(vals)
-    poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    if rows:
-        poses[:, :3, :] = np.asarray(rows).reshape(-1, 3, 4)
-    return poses
 
 
 def read_times_file(path: str | Path) -> np.ndarray:
@@ -116,7 +98,10 @@ class KittiOdometry(Dataset):
         poses = None
         pose_path = self.root / "poses" / f"{self.sequence}.txt"
         if pose_path.is_file():
-            poses = read_pose_file(pose_path)
+            try:
+                poses = read_kitti_poses(pose_path)
+            except ValueError as err:  # the one KITTI pose reader (dfvo.eval.trajectory_io), as a dataset error
+                raise DatasetError(str(err)) from err
             if len(poses) != n_all:
                 raise DatasetError(f"pose file {pose_path} has {len(poses)} poses but {seq_dir / left_name} has "
                                    f"{n_all} images; expected one pose per image")

@@ -1,20 +1,19 @@
-"""Optical-flow metrics (AEPE, Out-N, KITTI Fl) and KITTI's 16-bit flow PNG format.
+"""Optical-flow metrics: AEPE, Out-N, KITTI Fl, and the KITTI devkit's filling of sparse predictions.
 
 Convention:
     Flow ``(B,2,H,W)`` or ``(2,H,W)`` in pixels (u right, v down); a validity mask of the same leading shape
-    with one channel (``(B,1,H,W)`` / ``(1,H,W)``) or none (all valid). KITTI flow PNG: 16-bit RGB,
-    ``R = u*64 + 2^15``, ``G = v*64 + 2^15``, ``B = valid (0/1)``. The PNG codec here is self-contained
-    (zlib + numpy) so no extra dependency is needed.
+    with one channel (``(B,1,H,W)`` / ``(1,H,W)``) or none (all valid). ``EPE = ||pred - gt||``; Out-N is the
+    percentage of pixels with ``EPE > N`` px (the DF-VO paper's Out-1); KITTI's Fl (flow outlier) is the
+    percentage with ``EPE > 3`` px **and** ``EPE > 5 %`` of the true flow magnitude (the KITTI 2015 devkit).
+    Flow files (``.flo``, ``.pfm``, KITTI PNG) are read and written by :mod:`dfvo.data.flow_io`.
 """
 
 from __future__ import annotations
 
-import struct
-import zlib
-from pathlib import Path
-
 import numpy as np
 import torch
+
+__all__ = ["compute_flow_metrics", "flow_error_sums", "metrics_from_sums", "kitti_fill_invalid"]
 
 
 def _epe_and_mag(flow_pred: torch.Tensor, flow_gt: torch.Tensor, valid: torch.Tensor | None):
@@ -29,119 +28,101 @@ def _epe_and_mag(flow_pred: torch.Tensor, flow_gt: torch.Tensor, valid: torch.Te
         if valid.shape[-3] != 1 or valid.shape[:-3] + valid.shape[-2:] != epe.shape:
             raise ValueError(f"valid must be {tuple(epe.shape[:-2])}+(1,)+{tuple(epe.shape[-2:])}, got "
                              f"{tuple(valid.shape)}")
-        mask = valid.squeeze(-3).bool()
-    if not bool(mask.any()):
-        raise ValueError("flow metrics: the validity mask selects no pixel")
+        mask = valid.squeeze(-3).bool().to(epe.device)
     return epe[mask], mag[mask]
 
 
+def flow_error_sums(flow_pred: torch.Tensor, flow_gt: torch.Tensor, valid: torch.Tensor | None = None,
+                    thresholds: tuple[float, ...] = (1.0, 3.0, 5.0)) -> dict[str, float]:
+    """Sums to pool flow metrics over many images: ``{"epe_sum", "out_<N>_count", "fl_count", "num_pixels"}``.
+
+    A mask that selects no pixel gives zero sums (``num_pixels = 0``)."""
+    epe, mag = _epe_and_mag(flow_pred, flow_gt, valid)
+    out = {"epe_sum": float(epe.sum()), "num_pixels": int(epe.numel())}
+    for t in thresholds:
+        out[f"out_{t:g}_count"] = int((epe > t).sum())
+    out["fl_count"] = int(((epe > 3.0) & (epe > 0.05 * mag)).sum())
+    return out
+
+
+def metrics_from_sums(sums: dict[str, float]) -> dict[str, float | int | None]:
+    """``{"aepe", "out_<N>" (%), "fl" (%), "num_pixels"}`` from (pooled) :func:`flow_error_sums`; None when the
+    sums hold no pixel."""
+    n = int(sums["num_pixels"])
+    out: dict[str, float | int | None] = {"aepe": sums["epe_sum"] / n if n else None}
+    for key, value in sums.items():
+        if key.startswith("out_") and key.endswith("_count"):
+            out[key[: -len("_count")]] = 100.0 * value / n if n else None
+    out["fl"] = 100.0 * sums["fl_count"] / n if n else None
+    out["num_pixels"] = n
+    return out
+
+
 def compute_flow_metrics(flow_pred: torch.Tensor, flow_gt: torch.Tensor, valid: torch.Tensor | None = None,
-                 thresholds: tuple[float, ...] = (1.0, 3.0, 5.0)) -> dict[str, float]:
+                         thresholds: tuple[float, ...] = (1.0, 3.0, 5.0)) -> dict[str, float]:
     """AEPE, Out-N and KITTI Fl over the valid pixels of all images together.
 
     Returns:
         ``{"aepe", "out_<N>" (% of pixels with EPE > N px) for each threshold, "fl" (% of pixels with
         EPE > 3 px and EPE > 5 % of |flow_gt|), "num_pixels"}``.
+
+    Raises:
+        ValueError: shapes differ, or the mask selects no pixel.
     """
-    epe, mag = _epe_and_mag(flow_pred, flow_gt, valid)
-    out = {"aepe": float(epe.mean())}
-    for t in thresholds:
-        out[f"out_{t:g}"] = float((epe > t).double().mean() * 100)
-    out["fl"] = float(((epe > 3.0) & (epe > 0.05 * mag)).double().mean() * 100)
-    out["num_pixels"] = int(epe.numel())
-    return out
+    sums = flow_error_sums(flow_pred, flow_gt, valid, thresholds)
+    if sums["num_pixels"] == 0:
+        raise ValueError("flow metrics: the validity mask selects no pixel")
+    return metrics_from_sums(sums)
 
 
-def _chunk(tag: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+def _fill_rows(flow: np.ndarray, valid: np.ndarray) -> None:
+    """Row pass of :func:`kitti_fill_invalid` (in place on ``flow`` (H,W,2), ``valid`` (H,W))."""
+    H, W = valid.shape
+    for v in range(H):
+        cols = np.flatnonzero(valid[v])
+        if cols.size == 0:
+            continue
+        row = flow[v]
+        gaps = np.flatnonzero(np.diff(cols) > 1)  # interior holes between valid cols[g] and cols[g+1]
+        for g in gaps:
+            a, b = cols[g], cols[g + 1]
+            row[a + 1:b] = np.minimum(row[a], row[b])
+        row[: cols[0]] = row[cols[0]]
+        row[cols[-1] + 1:] = row[cols[-1]]
+        valid[v] = True
 
 
-def write_png16(path: str | Path, image: np.ndarray) -> None:
-    """Write an ``(H,W,3)`` uint16 array as a 16-bit RGB PNG."""
-    image = np.asarray(image)
-    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint16:
-        raise ValueError(f"write_png16 expects an (H,W,3) uint16 array, got {image.shape} {image.dtype}")
-    h, w, _ = image.shape
-    rows = np.ascontiguousarray(image.astype(">u2")).view(np.uint8).reshape(h, w * 6)
-    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
-    header = struct.pack(">IIBBBBB", w, h, 16, 2, 0, 0, 0)
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_bytes(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + _chunk(b"IDAT", zlib.compress(raw, 6))
-                           + _chunk(b"IEND", b""))
+def kitti_fill_invalid(flow: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fill the invalid pixels of a predicted flow the way the KITTI devkit does before scoring a sparse result.
 
+    Per row, a run of invalid pixels between two valid ones takes the component-wise minimum of their two flows
+    (the background is assumed to be the smaller motion); pixels left of the first / right of the last valid pixel
+    take that pixel's flow. Then per column, pixels above the first / below the last valid pixel (rows that had
+    no valid pixel) take that pixel's flow.
 
-def _unfilter_row(ftype: int, row: np.ndarray, prev: np.ndarray, bpp: int, where: str) -> np.ndarray:
-    if ftype == 0:
-        return row
-    if ftype == 2:
-        return (row.astype(np.uint16) + prev).astype(np.uint8)
-    out = bytearray(row.tobytes())
-    up = prev.tobytes()
-    for i in range(len(out)):
-        a = out[i - bpp] if i >= bpp else 0
-        if ftype == 1:
-            out[i] = (out[i] + a) & 0xFF
-        elif ftype == 3:
-            out[i] = (out[i] + ((a + up[i]) >> 1)) & 0xFF
-        elif ftype == 4:
-            b, c = up[i], (up[i - bpp] if i >= bpp else 0)
-            p = a + b - c
-            pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-            out[i] = (out[i] + (a if pa <= pb and pa <= pc else b if pb <= pc else c)) & 0xFF
-        else:
-            raise ValueError(f"{where}: unknown PNG filter type {ftype}")
-    return np.frombuffer(bytes(out), np.uint8)
+    Args:
+        flow: ``(2,H,W)`` predicted flow.
+        valid: ``(1,H,W)`` bool, which pixels the prediction defines.
 
-
-def read_png16(path: str | Path) -> np.ndarray:
-    """Read a non-interlaced 16-bit RGB PNG into an ``(H,W,3)`` uint16 array."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"flow PNG {path} does not exist")
-    data = path.read_bytes()
-    if data[:8] != b"\x89PNG\r\n\x1a\n":
-        raise ValueError(f"{path}: not a PNG file")
-    pos, idat, header = 8, [], None
-    while pos < len(data):
-        (length,) = struct.unpack(">I", data[pos:pos + 4])
-        tag, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + length]
-        pos += 12 + length
-        if tag == b"IHDR":
-            header = struct.unpack(">IIBBBBB", body)
-        elif tag == b"IDAT":
-            idat.append(body)
-        elif tag == b"IEND":
-            break
-    if header is None:
-        raise ValueError(f"{path}: PNG without IHDR")
-    w, h, depth, color, _, _, interlace = header
-    if depth != 16 or color != 2 or interlace != 0:
-        raise ValueError(f"{path}: expected a 16-bit RGB non-interlaced PNG (KITTI flow format), got bit depth "
-                         f"{depth}, colour type {color}, interlace {interlace}")
-    raw = np.frombuffer(zlib.decompress(b"".join(idat)), np.uint8).reshape(h, 1 + w * 6)
-    prev = np.zeros(w * 6, np.uint8)
-    rows = np.empty((h, w * 6), np.uint8)
-    for y in range(h):
-        prev = rows[y] = _unfilter_row(int(raw[y, 0]), raw[y, 1:], prev, 6, f"{path} row {y}")
-    return rows.view(">u2").reshape(h, w, 3).astype(np.uint16)
-
-
-def write_kitti_flow(path: str | Path, flow: np.ndarray | torch.Tensor,
-                     valid: np.ndarray | torch.Tensor | None = None) -> None:
-    """Write ``(2,H,W)`` flow (and optional ``(H,W)``/``(1,H,W)`` validity) as a KITTI 16-bit flow PNG."""
-    flow = np.asarray(flow.detach().cpu() if isinstance(flow, torch.Tensor) else flow, np.float64)
-    if flow.ndim != 3 or flow.shape[0] != 2:
-        raise ValueError(f"write_kitti_flow expects flow of shape (2,H,W), got {flow.shape}")
-    v = np.ones(flow.shape[1:], bool) if valid is None else np.asarray(
-        valid.detach().cpu() if isinstance(valid, torch.Tensor) else valid).reshape(flow.shape[1:]).astype(bool)
-    enc = np.clip(np.round(flow * 64.0 + 2**15), 0, 2**16 - 1).astype(np.uint16)
-    write_png16(path, np.stack([enc[0], enc[1], v.astype(np.uint16)], axis=-1))
-
-
-def read_kitti_flow(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
-    """Read a KITTI flow PNG: ``(flow (2,H,W) float32 px, valid (1,H,W) bool)``; invalid pixels get flow 0."""
-    img = read_png16(path).astype(np.float64)
-    valid = img[..., 2] > 0
-    flow = (img[..., :2] - 2**15) / 64.0
-    flow[~valid] = 0.0
-    return torch.from_numpy(flow.transpose(2, 0, 1).astype(np.float32)), torch.from_numpy(valid[None])
+    Returns:
+        ``(flow (2,H,W), valid (1,H,W))``: every pixel filled except rows without any valid pixel that lie between
+        rows with one (flow 0 and invalid there, as in the devkit); unchanged when no pixel or every pixel is
+        valid.
+    """
+    if flow.dim() != 3 or flow.shape[0] != 2 or valid.shape != (1, *flow.shape[1:]):
+        raise ValueError(f"kitti_fill_invalid: expected flow (2,H,W) and valid (1,H,W), got {tuple(flow.shape)} and "
+                         f"{tuple(valid.shape)}")
+    f = flow.detach().cpu().double().permute(1, 2, 0).numpy().copy()
+    m = valid[0].detach().cpu().numpy().astype(bool).copy()
+    if m.all() or not m.any():
+        return flow, valid
+    f[~m] = 0.0  # the devkit's reader gives invalid pixels flow 0; rows without any valid pixel keep it
+    _fill_rows(f, m)
+    # columns: extrapolate the first / last valid row upwards / downwards (interior empty rows stay 0, invalid)
+    rows = np.flatnonzero(m.any(axis=1))
+    f[: rows[0]] = f[rows[0]]
+    f[rows[-1] + 1:] = f[rows[-1]]
+    m[: rows[0]] = True
+    m[rows[-1] + 1:] = True
+    return (torch.from_numpy(f.transpose(2, 0, 1).astype(np.float32)).to(flow.device),
+            torch.from_numpy(m[None]).to(valid.device))

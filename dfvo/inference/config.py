@@ -22,9 +22,9 @@ from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
 from dfvo.tracking.config import TrackerConfig
 from dfvo.training.online_flow import OnlineFlowConfig
 
-__all__ = ["AlignMode", "PoseFormat", "ImgResConfig", "SyntheticDataConfig", "KittiOdomDataConfig",
-           "KittiRawDataConfig", "FolderDataConfig", "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig",
-           "InferConfig", "register_configs", "typed"]
+__all__ = ["AlignMode", "PoseFormat", "ImgResConfig", "DataConfig", "SyntheticDataConfig", "KittiOdomDataConfig",
+           "KittiRawDataConfig", "FolderDataConfig", "EurocDataConfig", "TumDataConfig", "VideoDataConfig",
+           "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig", "InferConfig", "register_configs", "typed"]
 
 
 class AlignMode(StrEnum):
@@ -45,20 +45,30 @@ class PoseFormat(StrEnum):
 
 @dataclass
 class ImgResConfig:
-    """Working size the frames are resized to (intrinsics follow); both None: the data's native size."""
+    """Working size the frames are resized to (intrinsics follow exactly).
 
-    height: int | None = 192
+    ``width`` alone keeps the frames' aspect ratio (the height follows, both rounded to multiples of 32, the
+    networks' stride: KITTI 1241x376 → 640x192, EuRoC 752x480 → 640x416); ``scale`` alone scales both sides;
+    ``height`` and ``width`` together force that size (an aspect change is reported); all null: native size.
+    """
+
+    height: int | None = None
     width: int | None = 640
+    scale: float | None = None
 
 
 @dataclass
 class DataConfig:
-    """Fields every dataset kind has: ``seq`` (sequence name), frame range ``[start, end)``."""
+    """Fields every dataset kind has: ``seq`` (sequence name), frames ``[start, end)`` every ``step``-th, and ground
+    truth for data that has none of its own: ``gt`` (a trajectory file), ``gt_format`` (``auto``, ``kitti``,
+    ``tum``, ``euroc``), ``times`` (a file of frame timestamps in seconds, one per line, to associate a timestamped
+    ``gt`` with the frames)."""
 
     kind: str = MISSING
     seq: str | None = None
     start: int | None = None
     end: int | None = None
+    step: int | None = None
 
 
 @dataclass
@@ -104,6 +114,61 @@ class FolderDataConfig(DataConfig):
     cx: float | None = None
     cy: float | None = None
     dist: list[float] | None = None
+    gt: str | None = None
+    gt_format: str = "auto"
+    times: str | None = None
+    gt_tolerance: float = 0.02
+
+
+@dataclass
+class EurocDataConfig(DataConfig):
+    """EuRoC MAV: ``root`` the sequence folder (or its ``mav0/``); intrinsics, distortion and the body→camera
+    extrinsic ``T_BS`` from ``CAMERA/sensor.yaml``, timestamps from ``CAMERA/data.csv``, ground truth from
+    ``state_groundtruth_estimate0/data.csv`` associated by nearest timestamp (``gt_tolerance`` seconds) and moved to
+    the camera frame; ``unmatched``: ``trim`` (drop frames outside the ground truth), ``nan``, ``none``."""
+
+    kind: str = "euroc"
+    root: str | None = None
+    camera: str = "cam0"
+    undistort: bool = True
+    gt_tolerance: float = 0.01
+    unmatched: str = "trim"
+
+
+@dataclass
+class TumDataConfig(DataConfig):
+    """TUM RGB-D: ``root`` the sequence folder (``rgb.txt``, ``groundtruth.txt``); intrinsics given, or the published
+    freiburg1/2/3 ones chosen from the folder name (``camera=auto``) or ``camera=fr1|fr2|fr3``."""
+
+    kind: str = "tum"
+    root: str | None = None
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    dist: list[float] | None = None
+    camera: str = "auto"
+    undistort: bool = True
+    gt_tolerance: float = 0.02
+    unmatched: str = "trim"
+
+
+@dataclass
+class VideoDataConfig(DataConfig):
+    """A video file (``path``, decoded as a stream with PyAV: ``pip install "dfvo[video]"``), intrinsics in pixels of
+    the stored frames, optional distortion; timestamps from the container; ground truth as for ``folder``."""
+
+    kind: str = "video"
+    path: str | None = None
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    dist: list[float] | None = None
+    gt: str | None = None
+    gt_format: str = "auto"
+    times: str | None = None
+    gt_tolerance: float = 0.02
 
 
 DATA_SCHEMAS: dict[str, type[DataConfig]] = {
@@ -111,6 +176,9 @@ DATA_SCHEMAS: dict[str, type[DataConfig]] = {
     "kitti_odom": KittiOdomDataConfig,
     "kitti_raw": KittiRawDataConfig,
     "folder": FolderDataConfig,
+    "euroc": EurocDataConfig,
+    "tum": TumDataConfig,
+    "video": VideoDataConfig,
 }
 
 

@@ -4,26 +4,31 @@ Convention:
     ``FrameSequence.image(i)`` is (3,H,W) float in [0,1] at the working resolution, ``K`` (3,3) in its pixels,
     ``poses`` (N,4,4) float64 ``T_w_c`` of the left camera when ground truth exists (else None), ``world`` the
     :class:`~dfvo.data.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it), ``timestamps``
-    (N,) float64 seconds of each frame when the dataset has them (else None).
+    (N,) float64 seconds of each frame when the dataset has them (else None), ``frame_ids`` (N,) the frames'
+    indices in the dataset's own list when a range or step selected them (else None).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-__all__ = ["FrameSequence", "build_sequence", "resolve_data", "DATA_ROOT_ENV"]
+__all__ = ["FrameSequence", "build_sequence", "resolve_data", "working_hw", "at_working_size", "DATA_ROOT_ENV"]
+
+log = logging.getLogger("dfvo.data")
 
 # dataset kind -> environment variable that gives its root once for all commands
 DATA_ROOT_ENV = {"kitti_odom": "DFVO_KITTI_ODOM_ROOT", "kitti_raw": "DFVO_KITTI_RAW_ROOT"}
 KITTI_ODOM_SEQ = re.compile(r"^\d{1,2}$")
+SYNTHETIC_FRAME_PERIOD_S = 0.1  # the synthetic camera runs at KITTI's 10 Hz
 
 
 @dataclass
@@ -37,17 +42,11 @@ class FrameSequence:
     poses: np.ndarray | None = None
     world: Any = None
     timestamps: np.ndarray | None = None
+    frame_ids: np.ndarray | None = field(default=None, repr=False)
 
     def image(self, index: int) -> torch.Tensor:
         """(3,H,W) frame ``index``."""
         return self.load(index)
-
-
-def _size(img_res: Any) -> tuple[int | None, int | None]:
-    h, w = img_res.height, img_res.width
-    if (h is None) != (w is None):
-        raise ValueError(f"img_res: give both height and width or neither, got height={h}, width={w}")
-    return h, w
 
 
 def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
@@ -89,12 +88,54 @@ def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
     return data, name
 
 
+def working_hw(img_res: Any, native_hw: tuple[int, int]) -> tuple[int, int]:
+    """The working (height, width) that ``img_res`` (see :class:`dfvo.inference.config.ImgResConfig`) gives frames of
+    ``native_hw``."""
+    from dfvo.data.working_size import working_size
+
+    h, w, scale = img_res.height, img_res.width, getattr(img_res, "scale", None)
+    if scale is not None:
+        if h is not None or w is not None:
+            raise ValueError(f"img_res: give scale={scale} alone (height={h}, width={w} must be null)")
+        return working_size(native_hw, scale=float(scale))
+    if h is not None and w is not None:
+        if h <= 0 or w <= 0:
+            raise ValueError(f"img_res: height={h}, width={w}; expected positive sizes")
+        return int(h), int(w)
+    if w is not None:
+        return working_size(native_hw, width=int(w))
+    if h is not None:
+        raise ValueError(f"img_res: height={h} alone; give width= (the height follows the aspect ratio), both, or "
+                         "scale=")
+    return int(native_hw[0]), int(native_hw[1])
+
+
+def at_working_size(seq: FrameSequence, hw: tuple[int, int]) -> FrameSequence:
+    """``seq`` with its frames resized to ``hw`` (bilinear, :func:`dfvo.data.transforms.resize_with_intrinsics`) and
+    its intrinsics following exactly; a change of aspect ratio beyond 2 % is logged once."""
+    from dfvo.data.transforms import resize_image
+    from dfvo.data.working_size import aspect_change
+    from dfvo.geometry.camera import resize_intrinsics
+
+    native = tuple(int(v) for v in seq.image(0).shape[-2:])
+    if native == tuple(hw):
+        return seq
+    change = aspect_change(native, hw)
+    if abs(change) > 0.02:
+        log.warning("img_res: frames of %dx%d are resized to %dx%d, changing their aspect ratio by %+.0f%% (give "
+                    "img_res.width alone to keep it)", native[1], native[0], hw[1], hw[0], 100 * change)
+    load = seq.load
+    K = resize_intrinsics(seq.K, native, tuple(hw))
+    return replace(seq, K=K, load=lambda i: resize_image(load(i), int(hw[0]), int(hw[1])))
+
+
 def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSequence:
-    """Open the sequence described by a typed data config (:data:`dfvo.inference.config.DATA_SCHEMAS`).
+    """Open the sequence described by a typed data config (:data:`dfvo.inference.config.DATA_SCHEMAS`) at the working
+    size ``img_res``.
 
     Args:
         data: the ``data`` node (typed), ``seq`` the command line's sequence (see :func:`resolve_data`),
-            ``img_res`` the working size (``height``/``width``, both None: native size).
+            ``img_res`` the working size (:class:`dfvo.inference.config.ImgResConfig`).
 
     Raises:
         ValueError: unknown ``data.kind``, missing root, bad sizes; dataset errors name the path.
@@ -104,46 +145,91 @@ def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSeque
     if data.kind not in DATA_SCHEMAS:
         raise ValueError(f"data.kind={data.kind!r}; expected one of {tuple(DATA_SCHEMAS)}")
     data, name = resolve_data(data, seq)
-    h, w = _size(img_res)
-    sel = slice(data.start, data.end)
-    if data.kind == "synthetic":
-        return _synthetic(data, name, h, w, sel)
+    if data.kind == "synthetic":  # rendered at the working size directly
+        from dfvo.data.synthetic import KITTI_HW
+        return _synthetic(data, name, working_hw(img_res, KITTI_HW))
+    opened = _open_native(data, name)
+    return at_working_size(opened, working_hw(img_res, tuple(opened.image(0).shape[-2:])))
+
+
+def _range(data: Any) -> dict[str, int | None]:
+    return {"start": data.start, "end": data.end, "step": data.step}
+
+
+def _open_native(data: Any, name: str | None) -> FrameSequence:
+    sel = slice(data.start, data.end, data.step)
     if data.kind == "kitti_odom":
         from dfvo.data.kitti_odometry import KittiOdometry
         if name is None:
             raise ValueError("data=kitti_odom needs seq=NN (e.g. seq=06)")
-        ds = KittiOdometry(data.root, name, height=h, width=w, camera=data.camera, frames=sel, stereo=False)
+        ds = KittiOdometry(data.root, name, camera=data.camera, frames=sel, stereo=False)
         return FrameSequence(ds.sequence, len(ds), ds.intrinsics.float(), lambda i: ds[i]["image"], ds.poses,
                              timestamps=ds.timestamps)
     if data.kind == "kitti_raw":
-        return _kitti_raw(data.root, name, h, w, sel)
-    return _folder(data, name, h, w, sel)
+        return _kitti_raw(data.root, name, sel)
+    if data.kind == "euroc":
+        from dfvo.data.euroc import open_euroc
+        return open_euroc(data.root, camera=data.camera, undistort=data.undistort, gt_tolerance=data.gt_tolerance,
+                          unmatched=data.unmatched, **_range(data))
+    if data.kind == "tum":
+        from dfvo.data.tum_rgbd import open_tum
+        return open_tum(data.root, fx=data.fx, fy=data.fy, cx=data.cx, cy=data.cy, dist=data.dist,
+                        camera=data.camera, undistort=data.undistort, gt_tolerance=data.gt_tolerance,
+                        unmatched=data.unmatched, **_range(data))
+    if data.kind == "video":
+        from dfvo.data.video import open_video
+        _require_intrinsics(data)
+        if not data.path:
+            raise ValueError("data=video needs data.path=FILE (a video file such as .mp4 or .mkv)")
+        opened = open_video(data.path, fx=data.fx, fy=data.fy, cx=data.cx, cy=data.cy, dist=data.dist,
+                            **_range(data))
+        return _with_ground_truth(opened, data)
+    return _with_ground_truth(_folder(data, name, sel), data)
 
 
-def _folder(data: Any, name: str | None, h: int | None, w: int | None, sel: slice) -> FrameSequence:
-    from dfvo.data.image_folder import ImageFolder
+def _require_intrinsics(data: Any) -> None:
     for key in ("fx", "fy", "cx", "cy"):
         if getattr(data, key) is None:
-            raise ValueError(f"data=folder needs data.{key}= (intrinsics in pixels of the stored images)")
-    ds = ImageFolder(data.root, data.fx, data.fy, data.cx, data.cy, dist=data.dist, height=h, width=w)
+            raise ValueError(f"data={data.kind} needs data.{key}= (intrinsics in pixels of the stored frames)")
+
+
+def _with_ground_truth(seq: FrameSequence, data: Any) -> FrameSequence:
+    """``seq`` with the ground truth of ``data.gt`` (own frames and videos), when given."""
+    if not getattr(data, "gt", None):
+        return seq
+    from dfvo.inference.ground_truth import attach_ground_truth
+
+    return attach_ground_truth(seq, data)
+
+
+def _folder(data: Any, name: str | None, sel: slice) -> FrameSequence:
+    from dfvo.data.image_folder import ImageFolder
+    if not data.root:
+        raise ValueError("data=folder needs data.root=FOLDER (a folder of PNG/JPEG frames)")
+    _require_intrinsics(data)
+    ds = ImageFolder(data.root, data.fx, data.fy, data.cx, data.cy, dist=data.dist)
     ids = list(range(len(ds)))[sel]
-    return FrameSequence(name or Path(data.root).name, len(ids), ds.intrinsics.float(), lambda i: ds[ids[i]]["image"])
+    seq = FrameSequence(name or Path(data.root).name, len(ids), ds.intrinsics.float(), lambda i: ds[ids[i]]["image"])
+    seq.frame_ids = np.asarray(ids)
+    return seq
 
 
-def _synthetic(data: Any, scenario: str | None, h: int | None, w: int | None, sel: slice) -> FrameSequence:
-    from dfvo.data.synthetic import KITTI_HW, SyntheticWorld
+def _synthetic(data: Any, scenario: str | None, hw: tuple[int, int]) -> FrameSequence:
+    from dfvo.data.synthetic import SyntheticWorld
     scenario = scenario or "drive"
-    h, w = (h, w) if h is not None else KITTI_HW
-    world = SyntheticWorld(seed=data.seed, num_frames=data.num_frames, height=h, width=w,
+    world = SyntheticWorld(seed=data.seed, num_frames=data.num_frames, height=hw[0], width=hw[1],
                            exposure_change=data.exposure_change, noise_std=data.noise_std, scenario=scenario)
-    ids = list(range(len(world)))[sel]
+    ids = list(range(len(world)))[slice(data.start, data.end, data.step)]
     if len(ids) < 2:
-        raise ValueError(f"data=synthetic: frames {sel.start}..{sel.stop} select {len(ids)} frames; expected at "
+        raise ValueError(f"data=synthetic: frames {data.start}..{data.end} select {len(ids)} frames; expected at "
                          "least 2")
+    if data.step not in (None, 1):
+        raise ValueError(f"data=synthetic: data.step={data.step}; the oracle sources need consecutive frames")
     poses = world.poses().numpy()[ids]
     name = f"synthetic_{scenario}_s{world.seed}"
+    times = np.asarray(ids, dtype=np.float64) * SYNTHETIC_FRAME_PERIOD_S
     return FrameSequence(name, len(ids), world.intrinsics().float(), lambda i: world.image(ids[i]), poses,
-                         _OffsetWorld(world, ids[0]))
+                         _OffsetWorld(world, ids[0]), timestamps=times)
 
 
 class _OffsetWorld:
@@ -159,10 +245,10 @@ class _OffsetWorld:
         return self.world.depth(i + self.offset)
 
 
-def _kitti_raw(root: str, seq: str | None, h: int | None, w: int | None, sel: slice) -> FrameSequence:
+def _kitti_raw(root: str, seq: str | None, sel: slice) -> FrameSequence:
     from dfvo.data.kitti_raw import KittiRawSnippets
     drives = [seq] if seq is not None else None
-    ds = KittiRawSnippets(root, h, w, drives=drives, stereo=True, temporal=False)
+    ds = KittiRawSnippets(root, None, None, drives=drives, stereo=True, temporal=False)
     if len(ds.drives) != 1:
         names = [d.dir.name for d in ds.drives]
         raise ValueError(f"data=kitti_raw under {root}: {names} drives found; choose one with seq=DRIVE")

@@ -31,7 +31,8 @@ class FrameRecord:
 
     Attributes:
         image_prev, image: (3,H,W) frames ``index-1`` and ``index``. flow_fwd, flow_bwd: (2,H,W) the flows the
-        tracker used. depth_prev: (1,H,W) metres. result: the tracker's pose and diagnostics.
+        tracker used. depth_prev: (1,H,W) metres. depth: (1,H,W) of frame ``index`` when it was computed (two-view
+        scale), else None. result: the tracker's pose and diagnostics.
         stage_seconds: this frame's share of each stage (``t_flow``, ``t_refine``, ``t_depth``, ``t_tracker``).
     """
 
@@ -43,6 +44,7 @@ class FrameRecord:
     depth_prev: torch.Tensor
     result: FrameResult
     stage_seconds: dict[str, float]
+    depth: torch.Tensor | None = None
 
 
 def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSource, vo: VisualOdometry, *,
@@ -93,4 +95,5 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
         share = {"t_flow": timer.last["flow"] / n, "t_refine": t_refine / n, "t_depth": timer.last["depth"] / n,
                  "t_tracker": timer.last["tracker"] / n}
         for k, (i, res) in enumerate(zip(idx, results, strict=True)):
-            yield FrameRecord(i + 1, imgs[k], imgs[k + 1], flow_fwd[k], flow_bwd[k], depth[k], res, share)
+            yield FrameRecord(i + 1, imgs[k], imgs[k + 1], flow_fwd[k], flow_bwd[k], depth[k], res, share,
+                              None if depth_next is None else depth_next[k])

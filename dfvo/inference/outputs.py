@@ -1,6 +1,7 @@
 """Files an inference run writes as frames are produced (an interrupted run leaves valid prefixes).
 
-- ``SEQ.txt``: the trajectory, one line per input frame, flushed per line (KITTI or TUM format).
+- ``SEQ.txt``: the trajectory, one line per input frame, flushed per line (KITTI or TUM format:
+  :class:`dfvo.eval.trajectory_io.TrajectoryWriter`).
 - ``frames.csv``: one row per frame (frame 0 is the reference, tracker ``init``): the fields of
   :class:`~dfvo.tracking.diagnostics.FrameDiagnostics` and the seconds per stage.
 - ``metrics.json``, ``summary.json``, the plots: at the end (:mod:`dfvo.inference.report`).
@@ -14,11 +15,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from dfvo.tracking.diagnostics import DIAGNOSTIC_FIELDS, FrameDiagnostics
 
-__all__ = ["prepare_out_dir", "PoseWriter", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary"]
+__all__ = ["prepare_out_dir", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary"]
 
 STAGE_FIELDS = ["t_flow", "t_refine", "t_depth", "t_tracker"]
 CSV_FIELDS = [f for f in DIAGNOSTIC_FIELDS if not f.startswith("time_")] + STAGE_FIELDS
@@ -47,34 +46,6 @@ def prepare_out_dir(out_dir: Any) -> Path:
     if not os.access(out, os.W_OK | os.X_OK):
         raise PermissionError(f"out_dir={out}: the output folder is not writable; pass out_dir= a writable folder")
     return out
-
-
-def pose_line(T: np.ndarray) -> str:
-    """One KITTI pose-file line for a (4,4) pose (12 numbers, row-major 3x4)."""
-    return " ".join(f"{v:.9e}" for v in np.asarray(T, dtype=np.float64)[:3, :4].reshape(-1))
-
-
-class PoseWriter:
-    """Append poses to a KITTI pose file, one flushed line each.
-
-    Args:
-        path: output file (truncated on open).
-    """
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = self.path.open("w")
-        self.count = 0
-
-    def write(self, T_w_c: np.ndarray, timestamp: float | None = None) -> None:
-        """Append one (4,4) camera-to-world pose."""
-        self._f.write(pose_line(T_w_c) + "\n")
-        self._f.flush()
-        self.count += 1
-
-    def close(self) -> None:
-        self._f.close()
 
 
 def _fmt(v: Any) -> Any:

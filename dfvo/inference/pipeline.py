@@ -18,10 +18,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from dfvo.inference.config import InferConfig, typed
+from dfvo.eval.trajectory_io import TrajectoryWriter
+from dfvo.inference.config import InferConfig, PoseFormat, typed
 from dfvo.inference.frames import build_sequence
 from dfvo.inference.loop import FrameRecord, track_sequence
-from dfvo.inference.outputs import FramesCsv, PoseWriter, prepare_out_dir
+from dfvo.inference.outputs import FramesCsv, prepare_out_dir
 from dfvo.inference.report import finish_run
 from dfvo.inference.timing import StageTimer
 from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, check_sources
@@ -124,11 +125,19 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
 
 
 def _observers(cfg: InferConfig, out: Path, seq: Any) -> list[Any]:
+    """The per-frame loggers the config asks for (TensorBoard, the Rerun recording)."""
     observers: list[Any] = []
+    if cfg.viewer.kind not in ("none", "rerun"):
+        raise ValueError(f"viewer.kind={cfg.viewer.kind!r}; expected 'none' or 'rerun' (viewer=none|rerun)")
+    if cfg.viewer.kind == "rerun":
+        from dfvo.inference.rerun_observer import RerunObserver
+
+        hw = tuple(seq.image(0).shape[-2:])
+        observers.append(RerunObserver(out / "run.rrd", seq.K, hw, gt_poses=seq.poses, spawn=cfg.viewer.spawn))
     if cfg.tensorboard.enabled:
         from dfvo.inference.tb_logging import TensorboardObserver
 
-        observers.append(TensorboardObserver(out / "tensorboard", cfg.tensorboard.every, cfg.tracker))
+        observers.append(TensorboardObserver(out / "tensorboard", cfg.tensorboard.every))
     return observers
 
 
@@ -139,10 +148,13 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     vo = VisualOdometry(cfg.tracker)
     timer = StageTimer()
     pose_file = out / f"{seq.name}.txt"
-    poses, table = PoseWriter(pose_file), FramesCsv(out / "frames.csv")
+    if cfg.pose_format == PoseFormat.tum and seq.timestamps is None:
+        raise ValueError(f"pose_format=tum needs the frames' timestamps and {seq.name} has none (data.times=FILE "
+                         "for a folder of frames); use pose_format=kitti")
+    poses, table = TrajectoryWriter(pose_file, cfg.pose_format.value), FramesCsv(out / "frames.csv")
     trajectory = [np.eye(4)]
     diagnostics: list[FrameDiagnostics] = []
-    poses.write(trajectory[0])
+    poses.write(trajectory[0], _stamp(seq, 0))
     table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init))
     bar = tqdm(total=seq.length - 1, desc=f"dfvo {seq.name}", unit="frame", disable=not cfg.progress)
     stopped: RunInterrupted | None = None
@@ -151,7 +163,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
         with _SignalsToInterrupt():
             for record in track_sequence(seq, flow_src, depth_src, vo, refine=refine, batch_size=cfg.batch_size,
                                          timer=timer, device=device, finetuner=finetuner):
-                _write_frame(record, poses, table, trajectory, diagnostics, observers)
+                _write_frame(record, poses, table, trajectory, diagnostics, observers, _stamp(seq, record.index))
                 bar.update(1)
                 bar.set_postfix(fps=f"{len(diagnostics) / (time.perf_counter() - start):.2f}")
     except RunInterrupted as err:
@@ -176,10 +188,14 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     return summary
 
 
-def _write_frame(record: FrameRecord, poses: PoseWriter, table: FramesCsv, trajectory: list[np.ndarray],
-                 diagnostics: list[FrameDiagnostics], observers: list[Any]) -> None:
+def _stamp(seq: Any, index: int) -> float | None:
+    return None if seq.timestamps is None else float(seq.timestamps[index])
+
+
+def _write_frame(record: FrameRecord, poses: TrajectoryWriter, table: FramesCsv, trajectory: list[np.ndarray],
+                 diagnostics: list[FrameDiagnostics], observers: list[Any], timestamp: float | None) -> None:
     T_w = record.result.T_w_cur.detach().cpu().double().numpy()
-    poses.write(T_w)
+    poses.write(T_w, timestamp)
     table.write(record.result.diagnostics, record.stage_seconds)
     trajectory.append(T_w)
     diagnostics.append(record.result.diagnostics)

@@ -14,7 +14,7 @@ from dfvo.inference.frames import FrameSequence
 from dfvo.inference.outputs import fallback_summary
 from dfvo.inference.timing import StageTimer
 from dfvo.io.json_io import write_json
-from dfvo.tracking.diagnostics import FrameDiagnostics
+from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 
 __all__ = ["hydra_choices", "hydra_overrides", "finish_run"]
 
@@ -54,8 +54,8 @@ def hydra_overrides() -> dict[str, str]:
 def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiagnostics], timer: StageTimer,
                wall: float, out: Path, *, align: str, pose_file: Path, warn_fallback_rate: float,
                partial: str | None = None, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Evaluate, plot and summarise a run; write ``metrics.json`` (when ground truth exists), ``trajectory.png``
-    and ``summary.json``.
+    """Evaluate, plot and summarise a run; write ``metrics.json`` (when ground truth exists), ``trajectory.png``,
+    ``frames.png`` (per-frame panel) and ``summary.json``.
 
     Args:
         seq: the sequence. pred: (M,4,4) poses written (M = N, or fewer when ``partial``).
@@ -67,7 +67,7 @@ def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiag
     Returns:
         The summary (as written).
     """
-    from dfvo.eval import align_trajectory, evaluate_trajectory, plot_trajectory, rebase_to_first
+    from dfvo.eval import aligned_prediction, evaluate_trajectory, plot_frames, plot_trajectory
 
     tracked = len(diagnostics)
     summary: dict[str, Any] = {
@@ -79,18 +79,21 @@ def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiag
         "choices": hydra_choices(), "overrides": hydra_overrides(), **(extra or {}),
     }
     metrics = None
-    gt_plotted, plotted, title = None, pred, seq.name
+    gt_plotted, plotted = None, pred
     if seq.poses is not None and len(pred) >= 2:
         gt = seq.poses[: len(pred)]
         metrics = {"sequence": seq.name, **evaluate_trajectory(gt, pred, align=align)}
         if partial is not None:
             metrics["partial"] = f"first {len(pred)} of {seq.length} frames ({partial})"
         write_json(out / "metrics.json", metrics)
-        gt_plotted = rebase_to_first(gt)  # plotted as evaluated: relative to the first frame, prediction aligned
-        plotted, _ = align_trajectory(gt_plotted, rebase_to_first(pred), align)
-        title = f"{seq.name} (prediction aligned: {align})"
-    if len(pred) >= 1:
-        plot_trajectory(gt_plotted, plotted, out / "trajectory.png", title=title)
+        # plotted as evaluated: both relative to their first frame (with ground truth), prediction aligned
+        gt_plotted, _, plotted, _ = aligned_prediction(gt, pred, align=align)
+    rows = [FrameDiagnostics(frame=0, tracker=TrackerUsed.init).as_row()] + [d.as_row() for d in diagnostics]
+    if len(pred) >= 2:
+        plot_trajectory(gt_plotted, plotted, out / "trajectory.png", title=seq.name,
+                        align=align if metrics is not None else None, metrics=metrics,
+                        caption="partial run: " + partial if partial else None)
+        plot_frames(rows, out / "frames.png", pred=plotted, gt=gt_plotted, title=seq.name)
     summary["metrics"] = metrics
     write_json(out / "summary.json", summary)
     _banner(summary, out)

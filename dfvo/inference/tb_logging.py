@@ -1,11 +1,10 @@
 """TensorBoard logging of an inference run (``tensorboard.enabled=true``): every ``every``-th frame's image, flow,
 forward-backward inconsistency, inverse depth, the tracker's correspondences and its diagnostics as scalars; the
-trajectory at the end. Training logs to TensorBoard through Lightning instead."""
+Training logs to TensorBoard through Lightning instead."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -14,7 +13,7 @@ from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.training.flow_viz import flow_to_color, scalar_to_color
 
-__all__ = ["TensorboardObserver", "log_trajectory"]
+__all__ = ["TensorboardObserver"]
 
 SCALARS = ("num_correspondences", "num_inliers", "gric_e", "gric_h", "scale")
 
@@ -24,10 +23,9 @@ class TensorboardObserver:
 
     Args:
         folder: the event folder. every: log images of every ``every``-th frame (scalars of every frame).
-        tracker: unused; kept for symmetry with other observers.
     """
 
-    def __init__(self, folder: Path, every: int = 10, tracker: Any = None) -> None:
+    def __init__(self, folder: Path, every: int = 10) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(str(folder))
@@ -65,23 +63,3 @@ class TensorboardObserver:
 
     def close(self) -> None:
         self.writer.close()
-
-
-def log_trajectory(writer: Any, gt: np.ndarray | None, pred: np.ndarray, metrics: dict[str, Any] | None) -> None:
-    """Log the bird's-eye trajectory (x, z) and the scalar metrics."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 5))
-    if gt is not None:
-        ax.plot(gt[:, 0, 3], gt[:, 2, 3], "k--", label="ground truth")
-    ax.plot(pred[:, 0, 3], pred[:, 2, 3], "b-", label="prediction")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.legend()
-    writer.add_figure("trajectory", fig, 0)
-    plt.close(fig)
-    for key, value in (metrics or {}).items():
-        if isinstance(value, int | float) and np.isfinite(value):
-            writer.add_scalar(f"metrics/{key}", value, 0)

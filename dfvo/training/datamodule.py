@@ -1,7 +1,10 @@
-"""LightningDataModule serving ``data=kitti_raw|kitti_odom|synthetic|kitti_raw_synthetic`` for every task.
+"""LightningDataModule serving ``data=kitti_raw|kitti_odom|synthetic|kitti_raw_synthetic`` and the flow datasets
+(``data=flyingchairs|flyingthings|sintel|kitti_flow``) for every task.
 
 Config (``cfg.data``, see ``conf/data/*.yaml``): name, root, height, width, batch_size, num_workers, seed,
 and per dataset: ``drives`` (kitti_raw), ``sequences`` (kitti_odom), ``seeds``/``num_frames`` (synthetic),
+``resize``/``crop``/``train_split``/``val_split`` and the dataset's own keys (flyingchairs, flyingthings, sintel,
+kitti_flow: frame pairs with true flow, :mod:`dfvo.data.flow_datasets`; ``val_split`` null = synthetic validation),
 ``val_seeds``/``val_num_frames``/``val_every`` (the synthetic validation worlds, always synthetic because
 only they have true depth and flow). Samples are whatever the datasets return (keys of :mod:`dfvo.data`).
 
@@ -27,7 +30,8 @@ from torch.utils.data import ConcatDataset, DataLoader, Dataset, DistributedSamp
 
 log = logging.getLogger("dfvo.training")
 
-DATASETS = ("kitti_raw", "kitti_odom", "synthetic", "kitti_raw_synthetic")
+FLOW_DATASETS = ("flyingchairs", "flyingthings", "sintel", "kitti_flow")  # dfvo.data.flow_datasets: flow pairs only
+DATASETS = ("kitti_raw", "kitti_odom", "synthetic", "kitti_raw_synthetic", *FLOW_DATASETS)
 
 
 def _get(cfg: Any, key: str, default: Any) -> Any:
@@ -182,12 +186,16 @@ class DFVODataModule(L.LightningDataModule):
             raise ValueError(f"data.name: expected one of {DATASETS}, got {self.name!r}")
         self.task = str(_get(cfg, "model.task", "depth"))
         supervised_flow = self.task == "flow" and str(_get(cfg, "model.mode", "supervised")) == "supervised"
-        if supervised_flow and self.name != "synthetic":
+        if self.name in FLOW_DATASETS and self.task != "flow":
+            raise ValueError(f"data={self.name} holds optical-flow frame pairs only; train it with "
+                             f"model=flow_supervised or model=flow_self (model.task=flow), not model.task={self.task}")
+        if supervised_flow and self.name not in ("synthetic", *FLOW_DATASETS):
             model = _get(cfg, "model.name", "flow_supervised")
             why = (" (its KITTI samples have none, and a mixed batch keeps only the keys every sample has)"
                    if self.name == "kitti_raw_synthetic" else " has none")
             raise ValueError(f"model={model} (model.mode=supervised) trains on true optical flow, which only "
-                             f"data=synthetic provides; data={self.name}{why}. Use data=synthetic, or model=flow_self "
+                             f"data=synthetic and the flow datasets {FLOW_DATASETS} provide; data={self.name}{why}. "
+                             "Use data=synthetic (or data=flyingchairs ...), or model=flow_self "
                              f"for real video (e.g. model=flow_self data={self.name} "
                              "model.init_from=<a flow_supervised last.ckpt>)")
         self.height = int(_get(cfg, "data.height", 192))
@@ -225,11 +233,17 @@ class DFVODataModule(L.LightningDataModule):
         except (OSError, ValueError) as err:
             raise type(err)(f"data=kitti_odom (data.root={root}, sequences={seqs}): {err}") from err
 
+    def _flow_pairs(self, split: str, train: bool) -> Dataset:
+        from dfvo.data.flow_datasets import build_flow_dataset
+        return build_flow_dataset(self.name, lambda key, default: _get(self.cfg, f"data.{key}", default), split, train)
+
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is None:
             syn = lambda: self._synthetic(list(_get(self.cfg, "data.seeds", [0])),  # noqa: E731
                                           int(_get(self.cfg, "data.num_frames", 50)))
-            if self.name == "synthetic":
+            if self.name in FLOW_DATASETS:
+                train = self._flow_pairs(str(_get(self.cfg, "data.train_split", "train")), train=True)
+            elif self.name == "synthetic":
                 train = syn()
             elif self.name == "kitti_raw":
                 train = self._kitti_raw()
@@ -243,7 +257,10 @@ class DFVODataModule(L.LightningDataModule):
             self.train_set = train
         if self.val_set is None:
             val_seeds = list(_get(self.cfg, "data.val_seeds", [1000]))
-            if val_seeds:
+            val_split = _get(self.cfg, "data.val_split", None) if self.name in FLOW_DATASETS else None
+            if val_split:  # the flow dataset's own validation pairs (centre crop)
+                self.val_set = self._flow_pairs(str(val_split), train=False)
+            elif val_seeds:
                 val = self._synthetic(val_seeds, int(_get(self.cfg, "data.val_num_frames", 12)))
                 every = int(_get(self.cfg, "data.val_every", 1))
                 self.val_set = Subset(val, range(0, len(val), max(every, 1)))

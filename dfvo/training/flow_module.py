@@ -89,9 +89,15 @@ class FlowModule(L.LightningModule):
             if key not in batch:
                 raise KeyError(f"FlowModule (supervised): batch lacks {key!r}; use data=synthetic (true flows), "
                                f"got keys {sorted(batch)}")
-        lf, epe_f = multiscale_epe(flows_fwd, batch["flow_fwd"], batch["flow_fwd_valid"].bool())
-        lb, epe_b = multiscale_epe(flows_bwd, batch["flow_bwd"], batch["flow_bwd_valid"].bool())
-        return (lf + lb) / 2, {"epe": (epe_f[0] + epe_b[0]).detach() / 2}
+        terms = []
+        for flows, key in ((flows_fwd, "flow_fwd"), (flows_bwd, "flow_bwd")):
+            valid = batch[f"{key}_valid"].bool()
+            if bool(valid.any()):  # datasets with forward flow only (FlyingChairs, Sintel, KITTI) have no backward term
+                terms.append(multiscale_epe(flows, batch[key], valid))
+        if not terms:
+            raise ValueError("FlowModule (supervised): the batch has no valid ground-truth flow pixel")
+        loss = sum(t[0] for t in terms) / len(terms)
+        return loss, {"epe": sum(t[1][0] for t in terms).detach() / len(terms)}
 
     def _step(self, batch: dict[str, torch.Tensor], stage: str, batch_idx: int) -> torch.Tensor:
         img1, img2 = self._pairs(batch)

@@ -92,7 +92,8 @@ def _pattern(h: int, w: int) -> np.ndarray:
                      0.5 + 0.5 * np.sin((x + y) / 13)], -1).astype(np.float32)
 
 
-@pytest.mark.parametrize("dist", [[-0.3, 0.12, 0.001, -0.002], [-0.3, 0.12, 0.001, -0.002, -0.02]])
+@pytest.mark.parametrize("dist", [[-0.3, 0.12, 0.001, -0.002], [-0.3, 0.12, 0.001, -0.002, -0.02],
+                                  [-0.3, 0.12, 0.001, -0.002, -0.02, 0.05, -0.01, 0.003]])
 def test_undistortion_matches_opencv(dist: list[float]) -> None:
     h, w = 240, 320
     img = _pattern(h, w)
@@ -147,7 +148,7 @@ def test_errors(tmp_path: Path) -> None:
     Image.fromarray(np.zeros((8, 12, 3), np.uint8)).save(tmp_path / "a.png")
     with pytest.raises(ValueError, match="k1, k2, p1, p2"):
         ImageFolder(tmp_path, 10.0, 10.0, 6.0, 4.0, dist=[0.1, 0.2, 0.3])
-    with pytest.raises(ValueError, match="fx and fy must be positive"):
+    with pytest.raises(ValueError, match=r"data.fx=0 .* must be positive"):
         ImageFolder(tmp_path, 0.0, 10.0, 6.0, 4.0)
     with pytest.raises(ValueError, match="height and width"):
         ImageFolder(tmp_path, 10.0, 10.0, 6.0, 4.0, width=64)
@@ -157,3 +158,16 @@ def test_errors(tmp_path: Path) -> None:
     (tmp_path / "c.png").write_bytes(b"\x89PNG broken")
     with pytest.raises(DatasetError, match="c.png"):
         ImageFolder(tmp_path, 10.0, 10.0, 6.0, 4.0)[2]
+
+
+def test_intrinsics_checked_against_the_stored_frames(tmp_path: Path) -> None:
+    # issue 16: data.cx=3670 on a 752-px-wide image ran to exit 0; now one line names the setting
+    Image.fromarray(np.zeros((480, 752), np.uint8)).save(tmp_path / "0.png")
+    with pytest.raises(ValueError, match=r"^data.cx=3670 .*outside the 752-px-wide image.*expected 0 < cx < 752"):
+        ImageFolder(tmp_path, 458.7, 457.3, 3670.0, 248.4)
+    with pytest.raises(ValueError, match=r"data.cy=-3 .*outside the 480-px-high image"):
+        ImageFolder(tmp_path, 458.7, 457.3, 367.2, -3.0)
+    with pytest.raises(ValueError, match=r"data.fx=4.2 .*field of view"):  # a focal length in millimetres
+        ImageFolder(tmp_path, 4.2, 4.2, 367.2, 248.4)
+    ds = ImageFolder(tmp_path, 458.7, 457.3, 367.2, 248.4, dist=[0.0, 0.0, 0.0, 0.0])
+    assert ds.undistort is None  # all-zero distortion: nothing to undo

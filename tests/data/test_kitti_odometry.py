@@ -151,6 +151,20 @@ def test_pose_count_mismatch(tmp_path: Path) -> None:
         KittiOdometry(tmp_path, "00")
 
 
+def test_pose_file_with_frame_indices_and_malformed_pose_file(tmp_path: Path) -> None:
+    """ROOT/poses/SS.txt goes through the one KITTI pose reader (dfvo.eval.trajectory_io): 13 numbers a line (frame
+    index first) read like 12; a bad line is a DatasetError naming the file and the line."""
+    make_sequence(tmp_path, n=3, poses=3)
+    pose_file = tmp_path / "poses" / "00.txt"
+    rows = pose_file.read_text().splitlines()
+    pose_file.write_text("".join(f"{i} {row}\n" for i, row in enumerate(rows)))
+    ds = KittiOdometry(tmp_path, "00")
+    torch.testing.assert_close(ds[2]["pose"][:3, 3], torch.tensor([1.0, -0.2, 2.0]))
+    pose_file.write_text("".join(f"{row}\n" for row in rows[:2]) + "1 0 0 x 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DatasetError, match=r"00.txt:3: non-numeric"):
+        KittiOdometry(tmp_path, "00")
+
+
 def test_times_count_mismatch(tmp_path: Path) -> None:
     make_sequence(tmp_path, n=5, times=6)
     with pytest.raises(DatasetError, match=r"times.txt has 6 entries"):

@@ -1,4 +1,5 @@
-"""The ``python -m dfvo.evaluate`` command, ``evaluate_sequences`` (JSON, average, exclude) and the plots."""
+"""The ``python -m dfvo.evaluate`` command (a Hydra app: folders or single files, formats, prefixes, task dispatch, no
+files in the working directory), ``evaluate_sequences`` (JSON, average, exclude) and the plots."""
 
 from __future__ import annotations
 
@@ -122,3 +123,90 @@ def test_integer_sequence_ids_get_two_digits(folders, tmp_path: Path) -> None:
                            "seqs=[9,10]", "align=none"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert " 09 " in proc.stdout and " 10 " in proc.stdout
+
+
+def _cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dfvo.evaluate", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=120)
+
+
+def test_cli_single_files_write_nothing_else_in_the_working_directory(folders, tmp_path: Path) -> None:
+    gt_dir, pred_dir = folders
+    work = tmp_path / "work"
+    work.mkdir()
+    proc = _cli(f"gt={gt_dir / '09.txt'}", f"pred={pred_dir / '09.txt'}", "align=none", "out=m.json", cwd=work)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in work.iterdir()) == ["m.json"]  # no outputs/, .hydra/ or *.log
+    data = json.loads((work / "m.json").read_text())
+    assert data["task"] == "odometry" and list(data["sequences"]) == ["09"]
+    direct = evaluate_trajectory(_line(250, 1.0), _pred09(), "none")
+    assert data["sequences"]["09"]["t_err_pct"] == pytest.approx(direct["t_err_pct"], rel=1e-6)
+    assert data["sequences"]["09"]["association"]["method"] == "order"
+    bad = _cli(f"gt={gt_dir / '09.txt'}", f"pred={pred_dir / '09.txt'}", "bogus=1", cwd=work)
+    assert bad.returncode != 0 and "bogus" in bad.stderr
+    both = _cli(f"gt={gt_dir / '09.txt'}", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}", cwd=work)
+    assert both.returncode == 2 and both.stderr.startswith("error: both gt=") and len(both.stderr.splitlines()) == 1
+    assert sorted(p.name for p in work.iterdir()) == ["m.json"]
+
+
+def test_cli_prefix_and_timestamped_formats(tmp_path: Path) -> None:
+    """A shorter KITTI prediction needs allow_prefix=true and the table says so; a TUM prediction is matched by
+    timestamp against a EuRoC ground truth given as its dataset folder (<seq>/mav0/...)."""
+    from dfvo.eval.trajectory_io import write_euroc_poses, write_tum_poses
+
+    gt, pred = _line(250, 1.0), _pred09()
+    write_kitti_poses(tmp_path / "gt" / "09.txt", gt)
+    write_kitti_poses(tmp_path / "pred" / "09.txt", pred[:120])
+    refused = _cli(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}")
+    assert refused.returncode == 2 and "allow_prefix=true" in refused.stderr
+    proc = _cli(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}", "allow_prefix=true", "align=none")
+    assert proc.returncode == 0, proc.stderr
+    assert "09: prefix: the first 120 of 250 ground-truth poses (allow_prefix=true)" in proc.stdout
+    assert " 120 " in proc.stdout  # frames column: the evaluated poses
+
+    stamps = 1403636579.0 + np.arange(250) * 0.05
+    write_euroc_poses(tmp_path / "euroc" / "MH_01" / "mav0" / "state_groundtruth_estimate0" / "data.csv", gt, stamps)
+    write_tum_poses(tmp_path / "tum" / "MH_01.txt", pred[::2], stamps[::2] + 0.004)
+    out = tmp_path / "e.json"
+    proc = _cli(f"gt_dir={tmp_path / 'euroc'}", f"pred_dir={tmp_path / 'tum'}", "align=7dof", f"out={out}")
+    assert proc.returncode == 0, proc.stderr
+    assert "MH_01: 125 of 125 predicted poses matched by timestamp within 0.01 s (250 ground-truth poses" in proc.stdout
+    res = json.loads(out.read_text())["sequences"]["MH_01"]
+    assert res["gt_format"] == "euroc" and res["pred_format"] == "tum"
+    direct = evaluate_trajectory(gt[::2], pred[::2], "7dof")
+    assert res["ate_m"] == pytest.approx(direct["ate_m"], rel=1e-6, abs=1e-9)
+    assert res["rpe_m"] == pytest.approx(direct["rpe_m"], rel=1e-6)
+
+
+def test_task_dispatch_is_lazy_and_writes_out(monkeypatch, tmp_path: Path) -> None:
+    """task=flow|depth call dfvo.eval.flow_eval.evaluate_flow_task / depth_eval.evaluate_depth_task with the composed
+    config (shared gt_dir/pred_dir) and the command writes their dict to out=."""
+    import types
+
+    from hydra import compose, initialize_config_module
+
+    from dfvo.cli.evaluate import run
+
+    seen = {}
+
+    def fake_task(task: str):
+        def evaluate(cfg):
+            seen[task] = cfg
+            return {"task": task, "value": 1.5}
+        return evaluate
+
+    for task, module, func in (("flow", "dfvo.eval.flow_eval", "evaluate_flow_task"),
+                               ("depth", "dfvo.eval.depth_eval", "evaluate_depth_task")):
+        fake = types.ModuleType(module)
+        setattr(fake, func, fake_task(task))
+        setattr(fake, f"format_{task}_table", lambda result: f"table of {result['task']}")
+        monkeypatch.setitem(sys.modules, module, fake)
+    with initialize_config_module(config_module="dfvo.conf.evaluate", version_base="1.3"):
+        for task in ("flow", "depth"):
+            out = tmp_path / f"{task}.json"
+            cfg = compose(config_name="evaluate", overrides=[f"task={task}", "gt_dir=G", "pred_dir=P", f"out={out}"])
+            assert run(cfg) == {"task": task, "value": 1.5}
+            assert seen[task].gt_dir == "G" and seen[task].pred_dir == "P"
+            assert json.loads(out.read_text()) == {"task": task, "value": 1.5}
+        with pytest.raises(ValueError, match="task=pose: expected one of odometry, flow, depth"):
+            run(compose(config_name="evaluate", overrides=["task=pose"]))

@@ -1,15 +1,17 @@
-"""Flow metrics, KITTI flow PNG format (checked against OpenCV as a reference), Eigen depth metrics."""
+"""Flow metrics (AEPE, Out-N, Fl, pooled sums, the KITTI devkit's filling of sparse predictions), Eigen depth metrics.
+
+The flow file formats are tested in ``tests/data/test_flow_io.py``.
+"""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
-from dfvo.eval import compute_depth_metrics, compute_flow_metrics, read_kitti_flow, read_png16, write_kitti_flow
+from dfvo.eval.depth_metrics import compute_depth_metrics
+from dfvo.eval.flow_metrics import compute_flow_metrics, flow_error_sums, kitti_fill_invalid, metrics_from_sums
 
 
 def test_flow_metrics_hand_values() -> None:
@@ -30,39 +32,6 @@ def test_flow_metrics_hand_values() -> None:
     assert compute_flow_metrics(pred, gt, valid)["aepe"] == pytest.approx(1.25)
     with pytest.raises(ValueError, match="no pixel"):
         compute_flow_metrics(pred, gt, torch.zeros_like(valid))
-
-
-def test_flow_png_round_trip(tmp_path: Path) -> None:
-    g = torch.Generator().manual_seed(0)
-    flow = torch.round((torch.rand(2, 13, 21, generator=g) * 400 - 200) * 64) / 64
-    valid = torch.rand(1, 13, 21, generator=g) > 0.3
-    write_kitti_flow(tmp_path / "f.png", flow, valid)
-    back, v = read_kitti_flow(tmp_path / "f.png")
-    assert torch.equal(v, valid)
-    assert torch.equal(back[:, valid[0]], flow[:, valid[0]])
-    assert torch.all(back[:, ~valid[0]] == 0)
-
-
-def test_flow_png_matches_opencv(tmp_path: Path) -> None:
-    cv2 = pytest.importorskip("cv2")
-    rng = np.random.default_rng(1)
-    bgr = rng.integers(0, 2**16, size=(17, 29, 3), dtype=np.uint16)
-    bgr[..., 0] = rng.integers(0, 2, size=(17, 29))
-    cv2.imwrite(str(tmp_path / "cv.png"), bgr)  # libpng picks adaptive row filters: exercises the decoder
-    assert np.array_equal(read_png16(tmp_path / "cv.png"), bgr[..., ::-1])
-    flow = np.stack([np.full((5, 6), -3.25), np.full((5, 6), 10.5)])
-    write_kitti_flow(tmp_path / "mine.png", flow)
-    raw = cv2.imread(str(tmp_path / "mine.png"), cv2.IMREAD_UNCHANGED)
-    assert raw.dtype == np.uint16
-    assert np.all(raw[..., 2] == 2**15 - 208) and np.all(raw[..., 1] == 2**15 + 672) and np.all(raw[..., 0] == 1)
-
-
-def test_flow_png_rejects_8bit(tmp_path: Path) -> None:
-    from PIL import Image
-
-    Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / "x.png")
-    with pytest.raises(ValueError, match="x.png.*16-bit"):
-        read_kitti_flow(tmp_path / "x.png")
 
 
 def test_depth_metrics_hand_values() -> None:
@@ -94,34 +63,41 @@ def test_depth_median_scaling_and_caps() -> None:
         compute_depth_metrics(pred2[0], gt2[0])
 
 
-def _paeth(a: int, b: int, c: int) -> int:
-    p = a + b - c
-    pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-    return a if pa <= pb and pa <= pc else b if pb <= pc else c
+def test_pooled_sums_equal_metrics_of_the_concatenation() -> None:
+    g = torch.Generator().manual_seed(3)
+    gt = [torch.randn(1, 2, 5, 7, generator=g) * 10, torch.randn(1, 2, 4, 9, generator=g) * 10]
+    pred = [f + torch.randn(f.shape, generator=g) * 3 for f in gt]
+    sums = [flow_error_sums(p, t) for p, t in zip(pred, gt)]
+    pooled = metrics_from_sums({k: sums[0][k] + sums[1][k] for k in sums[0]})
+    flat = lambda xs: torch.cat([x.flatten(2) for x in xs], 2).unsqueeze(2)  # noqa: E731
+    whole = compute_flow_metrics(flat(pred), flat(gt))
+    assert pooled == pytest.approx(whole)
+    assert metrics_from_sums(flow_error_sums(pred[0], gt[0], torch.zeros(1, 1, 5, 7, dtype=torch.bool)))["aepe"] is None
 
 
-def test_png_decoder_handles_all_row_filters(tmp_path: Path) -> None:
-    """Encode each row with a different PNG filter (0-4) by a direct loop; the decoder must invert them."""
-    import struct
-    import zlib
-
-    rng = np.random.default_rng(4)
-    img = rng.integers(0, 2**16, size=(10, 7, 3), dtype=np.uint16)
-    rows = np.ascontiguousarray(img.astype(">u2")).view(np.uint8).reshape(10, 42).astype(int)
-    raw = bytearray()
-    for y in range(10):
-        ftype, cur = y % 5, rows[y]
-        prev = rows[y - 1] if y > 0 else np.zeros(42, int)
-        raw.append(ftype)
-        for i in range(42):
-            a, b, c = (cur[i - 6] if i >= 6 else 0), prev[i], (prev[i - 6] if i >= 6 else 0)
-            pred = [0, a, b, (a + b) // 2, _paeth(a, b, c)][ftype]
-            raw.append((cur[i] - pred) % 256)
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
-
-    header = chunk(b"IHDR", struct.pack(">IIBBBBB", 7, 10, 16, 2, 0, 0, 0))
-    body = chunk(b"IDAT", zlib.compress(bytes(raw))) + chunk(b"IEND", b"")
-    (tmp_path / "f.png").write_bytes(b"\x89PNG\r\n\x1a\n" + header + body)
-    assert np.array_equal(read_png16(tmp_path / "f.png"), img)
+def test_kitti_fill_invalid_hand_example() -> None:
+    """Rows: interior holes take the component-wise min of their neighbours, ends copy the nearest valid pixel;
+    rows with no valid pixel above / below copy the first / last row that has one; interior empty rows stay 0."""
+    u = torch.tensor([[0.0, 0, 0, 0, 0],
+                      [0, 5, 0, 0, 2],
+                      [0, 0, 0, 0, 0],
+                      [7, 0, 3, 0, 0],
+                      [0, 0, 0, 0, 0]])
+    v = -u
+    valid = torch.zeros(1, 5, 5, dtype=torch.bool)
+    valid[0, 1, 1] = valid[0, 1, 4] = valid[0, 3, 0] = valid[0, 3, 2] = True
+    flow, filled = kitti_fill_invalid(torch.stack([u, v]), valid)
+    expect_u = torch.tensor([[5.0, 5, 2, 2, 2],
+                             [5, 5, 2, 2, 2],
+                             [0, 0, 0, 0, 0],
+                             [7, 3, 3, 3, 3],
+                             [7, 3, 3, 3, 3]])
+    expect_v = torch.tensor([[-5.0, -5, -5, -5, -2],
+                             [-5, -5, -5, -5, -2],
+                             [0, 0, 0, 0, 0],
+                             [-7, -7, -3, -3, -3],
+                             [-7, -7, -3, -3, -3]])
+    assert torch.equal(flow[0], expect_u) and torch.equal(flow[1], expect_v)
+    assert filled[0].all(1).tolist() == [True, True, False, True, True]
+    same, same_valid = kitti_fill_invalid(torch.stack([u, v]), torch.ones_like(valid))
+    assert torch.equal(same, torch.stack([u, v])) and bool(same_valid.all())

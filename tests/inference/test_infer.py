@@ -553,3 +553,29 @@ def test_flow_refinement_settings(tmp_path: Path) -> None:
     run_infer(f"out_dir={tmp_path}", "data.num_frames=3", "flow.refine.iterations=0", *SMALL)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["sources"]["flow"] == "network" and summary["sources"]["flow_refinement"] is None
+
+
+def test_kitti_sequence_number_runs_kitti_odometry_from_the_environment(kitti_odom_root: Path,
+                                                                        tmp_path: Path) -> None:
+    """``python infer.py seq=10`` runs KITTI odometry sequence 10 from ``DFVO_KITTI_ODOM_ROOT``; without it one
+    line says how to configure the root."""
+    root = tmp_path / "kitti"
+    (root / "sequences").mkdir(parents=True)
+    (root / "poses").mkdir()
+    (root / "sequences" / "10").symlink_to(kitti_odom_root / "sequences" / "06")
+    (root / "poses" / "10.txt").write_text((kitti_odom_root / "poses" / "06.txt").read_text())
+    env = dict(os.environ, OMP_NUM_THREADS="1", DFVO_KITTI_ODOM_ROOT=str(root))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "infer.py", "seq=10", "tracker=hybrid", f"out_dir={out}", "data.end=4",
+                           "progress=false", "num_threads=1"], cwd=REPO, capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert len(read_poses(out / "10.txt")) == 4 and (out / "metrics.json").is_file()
+    env.pop("DFVO_KITTI_ODOM_ROOT")
+    proc = subprocess.run([sys.executable, "infer.py", "seq=10", f"out_dir={tmp_path / 'none'}"], cwd=REPO,
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert proc.returncode == 1
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "KITTI odometry sequence 10 needs the dataset folder" in lines[0], proc.stderr
+    assert "DFVO_KITTI_ODOM_ROOT" in lines[0] and "data.root=" in lines[0]
+    assert "Traceback" in (tmp_path / "none" / "infer.log").read_text()

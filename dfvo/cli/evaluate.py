@@ -1,0 +1,200 @@
+"""``dfvo-eval`` / ``python -m dfvo.evaluate``: evaluate trajectories (odometry), flow or depth.
+
+    dfvo-eval gt_dir=GT pred_dir=PRED align=6dof|7dof|scale [format=auto|kitti|tum|euroc] [allow_prefix=true]
+    dfvo-eval gt=GT_FILE pred=PRED_FILE align=7dof out=metrics.json
+    dfvo-eval task=flow ... | task=depth ...
+
+A Hydra app (``key=value`` overrides, ``--help`` for every key) on the config tree ``dfvo/conf/evaluate`` whose
+typed schema is :class:`EvaluateConfig`. It creates no run folder and no log file: it writes only ``out=`` and
+``plot_dir=``. Bad input ends with one ``error: ...`` line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import hydra
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+TASKS = ("odometry", "flow", "depth")
+SCHEMA_NAME = "evaluate_schema"
+
+
+@dataclass
+class EvaluateConfig:
+    """Every key of the evaluate command and its default (``evaluate.yaml`` only adds groups and Hydra settings).
+
+    Attributes:
+        task: ``odometry`` | ``flow`` | ``depth``.
+        gt_dir: ground truth: a folder (all tasks), or for odometry a file or a dataset folder.
+        pred_dir: predictions: a folder (all tasks), or for odometry one file.
+        gt: one ground-truth trajectory file (odometry; instead of ``gt_dir``).
+        pred: one predicted trajectory file (odometry; instead of ``pred_dir``).
+        align: ``6dof`` | ``7dof`` | ``scale`` | ``none``.
+        format: ``auto`` | ``kitti`` | ``tum`` | ``euroc`` of the files (``auto``: by content).
+        gt_format: format of the ground truth when it differs from ``format`` (None: ``format``).
+        seqs: sequence name or list of names (None: every prediction with ground truth); ints get two digits.
+        exclude: sequences left out of the average.
+        allow_prefix: evaluate a shorter line-by-line prediction against the first poses of the ground truth.
+        max_time_diff: timestamp association tolerance (s).
+        time_offset: added to predicted timestamps before association (s).
+        gt_times: timestamps of the ground truth (KITTI ``times.txt`` file or a folder of them).
+        out: JSON file for the results (None: print only).
+        plot_dir: folder for trajectory / segment-error plots (None: no plots).
+        flow: the ``flow/`` group (``task=flow``); depth: the ``depth/`` group (``task=depth``).
+    """
+
+    task: str = "odometry"
+    gt_dir: str | None = None
+    pred_dir: str | None = None
+    gt: str | None = None
+    pred: str | None = None
+    align: str = "7dof"
+    format: str = "auto"
+    gt_format: str | None = None
+    seqs: Any = None
+    exclude: Any = None
+    allow_prefix: bool = False
+    max_time_diff: float = 0.01
+    time_offset: float = 0.0
+    gt_times: str | None = None
+    out: str | None = None
+    plot_dir: str | None = None
+    flow: Any = None
+    depth: Any = None
+
+
+def register_schema() -> None:
+    """Register :class:`EvaluateConfig` as ``evaluate_schema`` in Hydra's ConfigStore (idempotent)."""
+    ConfigStore.instance().store(name=SCHEMA_NAME, node=EvaluateConfig)
+
+
+register_schema()
+
+
+def _names(value: Any) -> list[str] | None:
+    from dfvo.eval.report import sequence_name
+
+    if value is None:
+        return None
+    if OmegaConf.is_config(value):
+        value = OmegaConf.to_container(value)
+    items = value if isinstance(value, list | tuple) else [value]
+    return [sequence_name(s) for s in items]
+
+
+def _choice(key: str, value: Any, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise ValueError(f"{key}={value}: expected one of {', '.join(choices)}")
+    return value
+
+
+def odometry_options(cfg: DictConfig) -> dict:
+    """The validated keyword arguments of :func:`dfvo.eval.report.evaluate_sequences` for ``cfg``.
+
+    Raises:
+        ValueError: a missing or contradictory path key or an unknown choice (one line naming the key).
+    """
+    from dfvo.eval.alignment import ALIGN_MODES
+    from dfvo.eval.trajectory_io import FORMATS
+
+    paths = {}
+    for file_key, dir_key in (("gt", "gt_dir"), ("pred", "pred_dir")):
+        file_value, dir_value = cfg.get(file_key), cfg.get(dir_key)
+        if file_value is not None and dir_value is not None:
+            raise ValueError(f"both {file_key}={file_value} and {dir_key}={dir_value} are set; give one")
+        if file_value is None and dir_value is None:
+            raise ValueError(f"missing required argument {dir_key}=PATH (or {file_key}=FILE); "
+                             "python -m dfvo.evaluate --help")
+        paths[dir_key] = str(file_value if file_value is not None else dir_value)
+    if cfg.max_time_diff < 0:
+        raise ValueError(f"max_time_diff={cfg.max_time_diff}: expected seconds >= 0")
+    return {
+        **paths,
+        "align": _choice("align", cfg.align, ALIGN_MODES),
+        "format": _choice("format", cfg.format, FORMATS),
+        "gt_format": None if cfg.gt_format is None else _choice("gt_format", cfg.gt_format, FORMATS),
+        "seqs": _names(cfg.seqs),
+        "exclude": _names(cfg.exclude),
+        "plot_dir": cfg.plot_dir,
+        "allow_prefix": bool(cfg.allow_prefix),
+        "max_time_diff": float(cfg.max_time_diff),
+        "time_offset": float(cfg.time_offset),
+        "gt_times": cfg.gt_times,
+    }
+
+
+def parse_args(argv: list[str]) -> dict:
+    """Compose the config for ``argv`` (``key=value`` overrides) and return the odometry options plus ``out`` and
+    ``task`` (for tests and scripts; the command itself goes through :func:`main`).
+
+    Raises:
+        ValueError: an unknown key, a bad value or a missing path (the message names the key).
+    """
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="dfvo.conf.evaluate", version_base="1.3"):
+            cfg = compose(config_name="evaluate", overrides=list(argv))
+    except HydraException as exc:
+        cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""
+        raise ValueError(f"{exc}{cause}".replace("\n", " ")) from exc
+    finally:
+        GlobalHydra.instance().clear()
+    return {"task": _choice("task", cfg.task, TASKS), "out": cfg.out, **odometry_options(cfg)}
+
+
+def _dispatch(cfg: DictConfig) -> dict:
+    if cfg.task == "flow":
+        from dfvo.eval.flow_eval import evaluate_flow_task, format_flow_table
+
+        result = evaluate_flow_task(cfg)
+        print(format_flow_table(result))
+        return result
+    if cfg.task == "depth":
+        from dfvo.eval.depth_eval import evaluate_depth_task, format_depth_table
+
+        result = evaluate_depth_task(cfg)
+        print(format_depth_table(result))
+        return result
+    from dfvo.eval.report import evaluate_sequences, format_table
+
+    options = odometry_options(cfg)
+    with warnings.catch_warnings():  # the scale warning is printed once, under the table
+        warnings.simplefilter("ignore", UserWarning)
+        result = {"task": "odometry", **evaluate_sequences(options.pop("gt_dir"), options.pop("pred_dir"),
+                                                           **options)}
+    print(format_table(result))
+    return result
+
+
+def run(cfg: DictConfig) -> dict:
+    """Evaluate for a composed config: dispatch on ``cfg.task``, write ``cfg.out`` (JSON) when set."""
+    from dfvo.io.json_io import write_json
+
+    _choice("task", cfg.task, TASKS)
+    result = _dispatch(cfg)
+    if cfg.out:
+        print(f"wrote {write_json(cfg.out, result)}")
+    return result
+
+
+@hydra.main(config_path="pkg://dfvo.conf.evaluate", config_name="evaluate", version_base="1.3")
+def main(cfg: DictConfig) -> dict:
+    """The command: :func:`run`, with bad input reported as one ``error:`` line and exit status 2."""
+    try:
+        return run(cfg)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()
