@@ -44,10 +44,10 @@ from dfvo.sources.dis import DISFlow  # noqa: E402
 from dfvo.sources.networks import NetworkFlow  # noqa: E402
 
 
-def fundamental_from_pose(T_i_j: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """F (3,3) with x_j^T F x_i = 0 for the relative pose ``T_j_i`` = inverse of ``T_i_j`` (camera j from i)."""
-    T_j_i = np.linalg.inv(T_i_j)
-    R, t = T_j_i[:3, :3], T_j_i[:3, 3]
+def fundamental_from_pose(T_prev_cur: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """F (3,3) with x_cur^T F x_prev = 0 for the relative pose ``T_cur_prev`` = inverse of ``T_prev_cur``."""
+    T_cur_prev = np.linalg.inv(T_prev_cur)
+    R, t = T_cur_prev[:3, :3], T_cur_prev[:3, 3]
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     Kinv = np.linalg.inv(K)
     return Kinv.T @ tx @ R @ Kinv
@@ -100,11 +100,11 @@ def main() -> None:
         incon = forward_backward_inconsistency(fwd, bwd)
         sel = select_correspondences(fwd, incon)
         for b, k in enumerate(ks):
-            T_i_j = np.linalg.inv(ds.poses[k]) @ ds.poses[k + 1]
-            if np.linalg.norm(T_i_j[:3, 3]) < 0.1:
+            T_prev_cur = np.linalg.inv(ds.poses[k]) @ ds.poses[k + 1]
+            if np.linalg.norm(T_prev_cur[:3, 3]) < 0.1:
                 skipped += 1
                 continue
-            F = torch.from_numpy(fundamental_from_pose(T_i_j, K))[None, None]
+            F = torch.from_numpy(fundamental_from_pose(T_prev_cur, K))[None, None]
             x_j = grid + fwd[b].permute(1, 2, 0).reshape(1, -1, 2).double()
             d = sampson_sq(F, grid, x_j)[0, 0].sqrt()
             ok = torch.isfinite(d)

@@ -18,11 +18,11 @@ run() {  # run NAME COMMAND...
 }
 run fps_kitti06 python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 --sources network
 run fps_kitti06_one_view_scale python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
-    --sources network --overrides scale.scale_depth_views=1
+    --sources network --overrides tracker.scale.depth_views=1
 run fps_kitti06_refine3 python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
     --sources network --overrides flow.refine.iterations=3
 run fps_kitti06_paper_pipeline python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
-    --sources network --overrides flow.refine.iterations=0 scale.scale_depth_views=1
+    --sources network --overrides experiment=paper
 run fps_synthetic_network python benchmarks/infer_fps.py --frames 30 --sources network
 run fps_synthetic_oracle python benchmarks/infer_fps.py --frames 30 --sources oracle
 run depth_net python benchmarks/depth_net.py --threads 2 --skip-train

@@ -1,14 +1,18 @@
-"""Speed of the synthetic world: seconds per frame with all outputs (left, right, depth, fwd/bwd flow, masks).
+"""Speed of the synthetic world: milliseconds per frame, per scenario and resolution, on the CPU or a GPU.
 
-Prints one JSON object:
-    sequential: frames rendered in order (what datasets and infer.py do; the next frame's cast is reused),
-    cold: each frame rendered with empty caches (random access), both with mean/median/min wall seconds
-    and the mean process CPU seconds (all threads; a contention-free lower bound on the work when the
-    2-core machine is shared); plus resolution, number of frames, torch threads, the machine and its load.
+Prints one JSON object with, for every (scenario, resolution):
+    sequential: frames rendered in order with all outputs (left, right, depth, fwd/bwd flow, masks; what
+        datasets and infer.py do; the next frame's cast is reused),
+    cold: the same with empty caches (random access),
+    flow_pair: one training item of ``SyntheticFlowDataset`` with frame skips (1, 2, 3) (left images of frames
+        k and k+s, flow both ways, masks) with empty caches, what flow training renders per sample;
+each as mean/median/min wall milliseconds and the mean process CPU milliseconds (all threads; on a shared
+machine a contention-free lower bound on the work); plus torch threads, the device and the machine's load.
 
-Usage: python benchmarks/synthetic_render.py [--frames 20] [--height 192] [--width 640] [--threads 2]
-       [--png docs/images/synthetic_frame.png --png-frame 22]   (also save a 2x2 preview: left, right,
-       depth (inverse, magma), forward flow (hue = direction, saturation = magnitude, black = invalid))
+Usage: python benchmarks/synthetic_render.py [--scenarios drive,highway] [--sizes 192x640,96x320] [--frames 10]
+       [--threads 1] [--device cpu|cuda] [--speed 2.0] [--png docs/images/synthetic_frame.png --png-frame 22]
+       (--png also saves a 2x2 preview of the first scenario at the first size: left, right, depth (inverse,
+       magma), forward flow (hue = direction, saturation = magnitude, black = invalid))
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import time
 
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
+from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticWorld
 
 
 def _cpu_name() -> str:
@@ -37,8 +41,8 @@ def _cpu_name() -> str:
 
 
 def _stats(times: list[float], cpu: list[float]) -> dict[str, float]:
-    return {"mean_s": round(statistics.mean(times), 4), "median_s": round(statistics.median(times), 4),
-            "min_s": round(min(times), 4), "cpu_mean_s": round(statistics.mean(cpu), 4)}
+    return {"mean_ms": round(1e3 * statistics.mean(times), 1), "median_ms": round(1e3 * statistics.median(times), 1),
+            "min_ms": round(1e3 * min(times), 1), "cpu_mean_ms": round(1e3 * statistics.mean(cpu), 1)}
 
 
 def save_preview(world: SyntheticWorld, index: int, path: str) -> None:
@@ -47,7 +51,7 @@ def save_preview(world: SyntheticWorld, index: int, path: str) -> None:
     import numpy as np
     from PIL import Image
 
-    s = world.render(index)
+    s = {k: v.cpu() for k, v in world.render(index).items()}
     left = s["image"].permute(1, 2, 0).numpy()
     right = s["image_right"].permute(1, 2, 0).numpy()
     inv = (1.0 / s["depth"][0]).numpy()
@@ -61,45 +65,79 @@ def save_preview(world: SyntheticWorld, index: int, path: str) -> None:
     Image.fromarray((grid * 255).round().astype(np.uint8)).save(path, optimize=True)
 
 
+def _timed(fn, device: torch.device) -> tuple[float, float]:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    t, c = time.perf_counter(), time.process_time()
+    fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - t, time.process_time() - c
+
+
+def bench(scenario: str, height: int, width: int, frames: int, seed: int, device: torch.device,
+          speed: float | None) -> dict:
+    """Timings of one scenario at one resolution (see the module docstring)."""
+    world = SyntheticWorld(seed=seed, num_frames=frames + 4, height=height, width=width, scenario=scenario,
+                           speed=speed, device=device)
+    world.render(0)  # warm-up (allocations, first calls)
+    seq, seq_cpu, cold, cold_cpu, pair, pair_cpu = [], [], [], [], [], []
+    for i in range(1, frames + 1):
+        w, c = _timed(lambda i=i: world.render(i), device)
+        seq.append(w)
+        seq_cpu.append(c)
+    for i in range(1, frames + 1):
+        world._views.clear()
+        world._images.clear()
+        w, c = _timed(lambda i=i: world.render(i), device)
+        cold.append(w)
+        cold_cpu.append(c)
+    ds = SyntheticFlowDataset([seed], num_frames=frames + 4, height=height, width=width, frame_skips=(1, 2, 3),
+                              scenario=scenario, speed=speed, device=device)
+    order = torch.randperm(len(ds), generator=torch.Generator().manual_seed(0))[:frames].tolist()
+    for n in order:
+        ds.worlds[0]._views.clear()
+        ds.worlds[0]._images.clear()
+        w, c = _timed(lambda n=n: ds[n], device)
+        pair.append(w)
+        pair_cpu.append(c)
+    return {"scenario": scenario, "resolution": [height, width], "frames": frames,
+            "objects": len(world._scene.half), "vehicles": world._scene.num_dynamic,
+            "sequential": _stats(seq, seq_cpu), "cold": _stats(cold, cold_cpu), "flow_pair": _stats(pair, pair_cpu)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--height", type=int, default=192)
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--scenarios", default="drive,highway")
+    ap.add_argument("--sizes", default="192x640,96x320", help="comma-separated HxW")
+    ap.add_argument("--frames", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--speed", type=float, default=None, help="camera speed in m/frame (default: the scenario's)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--png", default=None, help="also save a preview PNG of one frame here")
     ap.add_argument("--png-frame", type=int, default=22)
     args = ap.parse_args()
-    if args.frames < 10:
-        raise SystemExit("--frames must be >= 10")
+    if args.frames < 3:
+        raise SystemExit("--frames must be >= 3")
     torch.set_num_threads(args.threads)
-    world = SyntheticWorld(seed=args.seed, num_frames=args.frames + 2, height=args.height, width=args.width)
-    world.render(0)  # warm-up (allocations, first calls)
-    seq, seq_cpu, cold, cold_cpu = [], [], [], []
-    for i in range(1, args.frames + 1):
-        t, c = time.perf_counter(), time.process_time()
-        world.render(i)
-        seq.append(time.perf_counter() - t)
-        seq_cpu.append(time.process_time() - c)
-    for i in range(1, args.frames + 1):
-        world._views.clear()
-        world._images.clear()
-        t, c = time.perf_counter(), time.process_time()
-        world.render(i)
-        cold.append(time.perf_counter() - t)
-        cold_cpu.append(time.process_time() - c)
+    device = torch.device(args.device)
+    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
+    scenarios = args.scenarios.split(",")
+    results = [bench(sc, h, w, args.frames, args.seed, device, args.speed) for sc in scenarios for h, w in sizes]
     if args.png:
-        save_preview(SyntheticWorld(seed=args.seed, height=args.height, width=args.width), args.png_frame, args.png)
+        h, w = sizes[0]
+        save_preview(SyntheticWorld(seed=args.seed, num_frames=args.png_frame + 2, height=h, width=w,
+                                    scenario=scenarios[0], speed=args.speed, device=device), args.png_frame, args.png)
     print(json.dumps({
         "benchmark": "synthetic_render",
-        "resolution": [args.height, args.width],
-        "frames": args.frames,
-        "outputs": ["image", "image_right", "depth", "flow_fwd", "flow_bwd", "flow_fwd_valid", "flow_bwd_valid",
-                    "dynamic_mask"],
-        "sequential": _stats(seq, seq_cpu),
-        "cold": _stats(cold, cold_cpu),
+        "outputs": {"sequential/cold": ["image", "image_right", "depth", "flow_fwd", "flow_bwd", "flow_fwd_valid",
+                                        "flow_bwd_valid", "dynamic_mask"],
+                    "flow_pair": ["image", "image_next", "flow_fwd", "flow_bwd", "flow_fwd_valid", "flow_bwd_valid",
+                                  "dynamic_mask"]},
+        "results": results,
         "torch_threads": torch.get_num_threads(),
+        "device": str(device) if device.type != "cuda" else torch.cuda.get_device_name(device),
         "machine": {"cpu": _cpu_name(), "cores": os.cpu_count(), "platform": platform.platform(),
                     "torch": torch.__version__, "load_avg_1min": os.getloadavg()[0]},
     }, indent=2))

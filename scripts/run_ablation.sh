@@ -20,7 +20,7 @@ mkdir -p "$OUT"
 sweep() {  # sweep NAME OVERRIDES...
     local name="$1"
     shift
-    python infer.py -m "$@" "hydra.sweep.dir=$OUT/$name" progress=false "${COMMON[@]}"
+    python infer.py -m "$@" "out_dir=$OUT/$name" progress=false "${COMMON[@]}"
 }
 COMMON=("$@")
 ORACLE=0
@@ -28,7 +28,7 @@ for arg in "$@"; do [[ "$arg" == flow=oracle ]] && ORACLE=1; done
 sweep tracker tracker=hybrid,pnp,e          # hybrid = the reference run
 sweep correspondence correspondence=uniform,best_n
 sweep scale scale=iterative
-sweep scale_views scale.scale_depth_views=1   # the paper's one-view scale
+sweep scale_views tracker.scale.depth_views=1   # the paper's one-view scale
 sweep model_selection model_selection=flow
 sweep img_res img_res=full
 if [[ $ORACLE -eq 0 ]]; then                  # factors of the network flow

@@ -1,8 +1,18 @@
-"""Synthetic driving world with exact ground truth: images, stereo, depth, optical flow, poses.
+"""Synthetic driving worlds with exact ground truth: images, stereo, depth, optical flow, poses.
 
-A street with textured road, pavements, building rows, poles, parked and moving cars, rendered by ray
-casting in plain PyTorch (:mod:`dfvo.data.synthetic_render`), with procedural textures evaluated on 3-D
-surface coordinates (:mod:`dfvo.data.synthetic_textures`). Everything is deterministic in ``seed``.
+Street scenarios: a street with textured road, pavements, building rows, poles, parked and moving cars
+(:mod:`dfvo.data.synthetic_trajectory`, :mod:`dfvo.data.synthetic_scene`). The highway scenario: a curving
+dual carriageway with lanes, median barrier, guard rails, trees, signs, forest edges and distant hills, and
+traffic at its own speeds (:mod:`dfvo.data.synthetic_highway`, :mod:`dfvo.data.synthetic_highway_scene`).
+Rendered by ray casting in plain PyTorch on the CPU or a GPU (:mod:`dfvo.data.synthetic_render`), with
+procedural textures evaluated on 3-D surface coordinates (:mod:`dfvo.data.synthetic_shading`,
+:mod:`dfvo.data.synthetic_textures`). Everything is deterministic in ``seed`` (and the settings).
+
+Modules: :mod:`dfvo.data.synthetic_world` (:class:`SyntheticWorld`), :mod:`dfvo.data.synthetic_datasets`
+(datasets, held-out worlds). This module gathers their public names.
+
+Held-out worlds: seeds >= ``HELD_OUT_SEED`` (1000) are evaluation worlds and are never trained on
+(:func:`check_training_seeds`); :func:`held_out_worlds` lists the ones benchmarks use, per scenario.
 
 Convention:
     - Images (3,H,W) float in [0,1]; depth (1,H,W) z in metres; flow (2,H,W) in pixels
@@ -17,261 +27,32 @@ Convention:
       reproduce it with a finite depth.
     - ``flow_*_valid`` is False where the point leaves the image (``u`` outside [0, W-1] or ``v`` outside
       [0, H-1]), falls behind the camera, or is hidden in the other frame by a nearer surface.
-    - ``dynamic_mask`` marks pixels of vehicles that move during the sequence (oncoming cars, the truck).
+    - ``dynamic_mask`` marks pixels of vehicles that move during the sequence (oncoming cars, the truck,
+      all highway traffic).
+    - ``flow(i, j)`` is exact for any two frames (frame-skip pairs included): static points move with the
+      camera, vehicle points with their vehicle's pose at frames i and j.
+    - Tensors from a world are on its ``device``, except ``poses()`` and ``vehicle_poses()`` (CPU float64).
 """
 
 from __future__ import annotations
 
-import math
-from collections import OrderedDict
+from dfvo.data.synthetic_datasets import (
+    HELD_OUT_SEED,
+    HELD_OUT_SPEED,
+    TRAINING_SCENARIOS,
+    TRAINING_SPEED,
+    HeldOutWorld,
+    SyntheticFlowDataset,
+    SyntheticSequenceDataset,
+    check_training_seeds,
+    held_out_worlds,
+)
+from dfvo.data.synthetic_highway import HIGHWAY_SPEED
+from dfvo.data.synthetic_render import SKY_DEPTH
+from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT, CITY_SPEED, SCENARIOS, TURN_RATE_DEG
+from dfvo.data.synthetic_world import KITTI_HW, KITTI_K, SyntheticWorld
 
-import numpy as np
-import torch
-from torch.utils.data import Dataset
-
-from dfvo.data.synthetic_render import SKY_DEPTH, View, camera_rays, cast, flow_between
-from dfvo.data.synthetic_scene import build_scene, rot_y
-from dfvo.data.synthetic_textures import shade_views
-from dfvo.data.synthetic_trajectory import SCENARIOS, make_trajectory
-from dfvo.geometry.camera import intrinsics_matrix, resize_intrinsics
-
-__all__ = ["SKY_DEPTH", "SCENARIOS", "SyntheticWorld", "SyntheticSequenceDataset", "SyntheticFlowDataset"]
-
-KITTI_K = (718.856, 718.856, 607.1928, 185.2157)
-KITTI_HW = (376, 1241)
-
-
-class SyntheticWorld:
-    """A rendered driving sequence with exact depth, flow, stereo and poses.
-
-    Args:
-        seed: world and trajectory seed (same seed, same pixels).
-        num_frames: sequence length N (>= 2).
-        height, width: output resolution (any size >= 8x8; intrinsics follow KITTI's ratios).
-        baseline: stereo baseline b in metres (right camera = left translated by +b along x).
-        exposure_change: vary the image gain smoothly from frame to frame (both cameras alike).
-        noise_std: standard deviation of additive Gaussian sensor noise (images clamped to [0,1]).
-        scenario: "drive" (mixed: drive, turn, still, rotation, planar, moving_car; see
-            :meth:`segment_names`), or one hard case alone: "still", "rotation", "planar", "moving_car",
-            or "straight" (driving without turns).
-    """
-
-    def __init__(self, seed: int = 0, num_frames: int = 100, height: int = 192, width: int = 640,
-                 baseline: float = 0.54, exposure_change: bool = False, noise_std: float = 0.0,
-                 scenario: str = "drive") -> None:
-        if height < 8 or width < 8:
-            raise ValueError(f"SyntheticWorld: height={height}, width={width}; expected both >= 8 pixels")
-        if baseline <= 0:
-            raise ValueError(f"SyntheticWorld: baseline={baseline}; expected a positive stereo baseline in metres")
-        if noise_std < 0:
-            raise ValueError(f"SyntheticWorld: noise_std={noise_std}; expected >= 0")
-        self.seed = int(seed)
-        self.height, self.width = int(height), int(width)
-        self.baseline = float(baseline)
-        self.exposure_change = bool(exposure_change)
-        self.noise_std = float(noise_std)
-        self.scenario = scenario
-        self._traj = make_trajectory(scenario, int(num_frames), self.seed)
-        self._scene = build_scene(self._traj, self.seed)
-        K = intrinsics_matrix(*KITTI_K, batch_size=1)[0]
-        self._K = resize_intrinsics(K, KITTI_HW, (self.height, self.width))
-        self._rays = camera_rays(self._K, self.height, self.width)
-        T = np.eye(4)
-        T[0, 3] = self.baseline
-        self._T_left_right = T
-        self._views: OrderedDict[tuple[int, int], View] = OrderedDict()
-        self._images: OrderedDict[tuple[int, int], torch.Tensor] = OrderedDict()
-
-    def __len__(self) -> int:
-        return len(self._traj.poses)
-
-    # ----------------------------------------------------------------------------------------- accessors
-    def poses(self) -> torch.Tensor:
-        """(N,4,4) float64 left-camera poses ``T_w_c`` (float64 keeps relative motions exact far from origin)."""
-        return torch.from_numpy(self._traj.poses.copy())
-
-    def intrinsics(self) -> torch.Tensor:
-        """(3,3) float32 intrinsics at (height, width)."""
-        return self._K.clone()
-
-    def segment_names(self) -> list[str]:
-        """Per-frame segment name: drive, turn, still, rotation, planar or moving_car."""
-        return list(self._traj.segments)
-
-    def vehicle_poses(self, index: int) -> torch.Tensor:
-        """(V,4,4) float64 ``T_w_o`` of the moving vehicles (box centre, yaw about +y) at frame ``index``."""
-        index = self._check_index(index)
-        centre, yaw = self._scene.box_poses(index)
-        V = self._scene.num_dynamic
-        T = np.tile(np.eye(4), (V, 1, 1))
-        T[:, :3, :3] = rot_y(yaw[len(yaw) - V:])
-        T[:, :3, 3] = centre[len(yaw) - V:]
-        return torch.from_numpy(T)
-
-    def T_right_left(self) -> torch.Tensor:
-        """(4,4) float32 transform from the left to the right camera (translation (-b, 0, 0))."""
-        return torch.from_numpy(np.linalg.inv(self._T_left_right)).float()
-
-    # ----------------------------------------------------------------------------------------- rendering
-    def _check_index(self, index: int) -> int:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"SyntheticWorld: frame index {index} out of range for a {len(self)}-frame sequence")
-        return index % len(self)
-
-    def _pose(self, index: int, cam: int) -> np.ndarray:
-        T = self._traj.poses[index]
-        return T @ self._T_left_right if cam == 1 else T
-
-    def view(self, index: int, cam: int = 0) -> View:
-        """Cast view of frame ``index`` for camera 0 (left) or 1 (right), cached (few most recent)."""
-        index = self._check_index(index)
-        if cam not in (0, 1):
-            raise ValueError(f"SyntheticWorld: cam={cam}; expected 0 (left) or 1 (right)")
-        key = (index, cam)
-        if key in self._views:
-            self._views.move_to_end(key)
-            return self._views[key]
-        v = cast(self._scene, index, self._pose(index, cam), self._K, self._rays, self.height, self.width)
-        self._views[key] = v
-        if len(self._views) > 6:
-            self._views.popitem(last=False)
-        return v
-
-    def _gain(self, index: int) -> float:
-        if not self.exposure_change:
-            return 1.0
-        return 1.0 + 0.18 * math.sin(0.45 * index + self.seed) + 0.07 * math.sin(1.7 * index + 3 * self.seed)
-
-    def image(self, index: int, cam: int = 0) -> torch.Tensor:
-        """(3,H,W) image of frame ``index``, left (cam 0) or right (cam 1), with exposure and noise applied."""
-        return self.images(index, (cam,))[0]
-
-    def images(self, index: int, cams: tuple[int, ...] = (0, 1)) -> list[torch.Tensor]:
-        """Images (3,H,W) of frame ``index`` for cameras ``cams`` (0 left, 1 right); missing ones are shaded in
-        one pass and cached (few most recent)."""
-        index = self._check_index(index)
-        todo = [c for c in cams if (index, c) not in self._images]
-        if todo:
-            shaded = shade_views(self._scene, [self.view(index, c) for c in todo], self._rays,
-                                 self._traj.route.legs)
-            for cam, img in zip(todo, shaded, strict=True):
-                g = self._gain(index)
-                if g != 1.0:
-                    img = (img * g).clamp(0, 1)
-                if self.noise_std > 0:
-                    gen = torch.Generator().manual_seed(self.seed * 1_000_003 + index * 2 + cam)
-                    img = (img + self.noise_std * torch.randn(img.shape, generator=gen)).clamp(0, 1)
-                self._images[(index, cam)] = img
-        out = []
-        for c in cams:
-            self._images.move_to_end((index, c))
-            out.append(self._images[(index, c)])
-        while len(self._images) > 6:
-            self._images.popitem(last=False)
-        return out
-
-    def depth(self, index: int) -> torch.Tensor:
-        """(1,H,W) depth (z, metres) of the left image; sky = ``SKY_DEPTH``."""
-        d = self.view(self._check_index(index)).depth
-        return torch.where(torch.isfinite(d), d, torch.full_like(d, SKY_DEPTH))[None]
-
-    def dynamic_mask(self, index: int) -> torch.Tensor:
-        """(1,H,W) bool: left-image pixels of vehicles that move during the sequence."""
-        ids = self.view(self._check_index(index)).ids
-        first_dyn = len(self._scene.half) - self._scene.num_dynamic + 1
-        return (ids >= first_dyn)[None]
-
-    def flow(self, i: int, j: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Exact flow (2,H,W) from left image ``i`` to left image ``j`` and its validity (1,H,W) bool."""
-        i, j = self._check_index(i), self._check_index(j)
-        return flow_between(self._scene, self.view(i), self.view(j), self._rays)
-
-    def render(self, index: int, right: bool = True, flow: bool = True) -> dict[str, torch.Tensor]:
-        """All ground truth of frame ``index`` (keys per :mod:`dfvo.data`).
-
-        Returns:
-            dict with ``image`` (3,H,W), ``image_right`` (3,H,W) (if ``right``), ``depth`` (1,H,W),
-            ``K`` (3,3), ``T_right_left`` (4,4), ``pose`` (4,4) float32 ``T_w_c``, ``dynamic_mask`` (1,H,W),
-            ``index`` (); and for ``index < len-1`` (if ``flow``): ``flow_fwd`` (2,H,W) index->index+1 on
-            image index, ``flow_bwd`` (2,H,W) index+1->index on image index+1, ``flow_fwd_valid``,
-            ``flow_bwd_valid`` (1,H,W) bool.
-        """
-        index = self._check_index(index)
-        imgs = self.images(index, (0, 1) if right else (0,))
-        out = {
-            "image": imgs[0],
-            "depth": self.depth(index),
-            "K": self.intrinsics(),
-            "T_right_left": self.T_right_left(),
-            "pose": torch.from_numpy(self._traj.poses[index]).float(),
-            "dynamic_mask": self.dynamic_mask(index),
-            "index": torch.tensor(index),
-        }
-        if right:
-            out["image_right"] = imgs[1]
-        if flow and index < len(self) - 1:
-            out["flow_fwd"], out["flow_fwd_valid"] = self.flow(index, index + 1)
-            out["flow_bwd"], out["flow_bwd_valid"] = self.flow(index + 1, index)
-        return out
-
-
-class _WorldsDataset(Dataset):
-    def __init__(self, seeds: list[int], num_frames: int, height: int, width: int, **world_kwargs) -> None:
-        if not seeds:
-            raise ValueError(f"{type(self).__name__}: seeds is empty; expected at least one world seed")
-        self.worlds = [SyntheticWorld(seed=s, num_frames=num_frames, height=height, width=width, **world_kwargs)
-                       for s in seeds]
-        self.items = [(w, k) for w in range(len(seeds)) for k in self._frames(num_frames)]
-
-    def _frames(self, n: int) -> range:
-        raise NotImplementedError
-
-    def __len__(self) -> int:
-        return len(self.items)
-
-
-class SyntheticSequenceDataset(_WorldsDataset):
-    """Temporal snippets with stereo and true depth, for depth-pose training (one per inner frame).
-
-    Args:
-        seeds: one synthetic world per seed.
-        num_frames, height, width, and keyword arguments: as :class:`SyntheticWorld`.
-
-    Each item: ``image_prev``, ``image``, ``image_next``, ``image_right`` (3,H,W), ``K`` (3,3),
-    ``T_right_left`` (4,4), ``pose``, ``pose_prev``, ``pose_next`` (4,4) ``T_w_c``, ``depth`` (1,H,W),
-    ``dynamic_mask`` (1,H,W), ``index`` ().
-    """
-
-    def _frames(self, n: int) -> range:
-        return range(1, n - 1)
-
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        w, k = self.items[i]
-        world = self.worlds[w]
-        out = world.render(k, right=True, flow=False)
-        poses = world.poses()
-        out["image_prev"] = world.image(k - 1)
-        out["image_next"] = world.image(k + 1)
-        out["pose_prev"] = poses[k - 1].float()
-        out["pose_next"] = poses[k + 1].float()
-        return out
-
-
-class SyntheticFlowDataset(_WorldsDataset):
-    """Consecutive pairs with exact forward/backward flow, for supervised flow training.
-
-    Each item: ``image``, ``image_next`` (3,H,W), ``flow_fwd``, ``flow_bwd`` (2,H,W), ``flow_fwd_valid``,
-    ``flow_bwd_valid``, ``dynamic_mask`` (1,H,W), ``K`` (3,3), ``index`` ().
-    """
-
-    def _frames(self, n: int) -> range:
-        return range(0, n - 1)
-
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        w, k = self.items[i]
-        world = self.worlds[w]
-        out = world.render(k, right=False, flow=True)
-        out["image_next"] = world.image(k + 1)
-        for key in ("depth", "T_right_left", "pose"):
-            out.pop(key)
-        return out
+__all__ = ["SKY_DEPTH", "SCENARIOS", "CAMERA_HEIGHT", "KITTI_K", "KITTI_HW", "HIGHWAY_SPEED", "CITY_SPEED",
+           "TURN_RATE_DEG", "TRAINING_SPEED", "TRAINING_SCENARIOS", "HELD_OUT_SEED", "HELD_OUT_SPEED", "HeldOutWorld",
+           "held_out_worlds", "check_training_seeds", "SyntheticWorld", "SyntheticSequenceDataset",
+           "SyntheticFlowDataset"]

@@ -1,14 +1,17 @@
-"""Vectorised ray casting of the synthetic street and exact optical flow between two rendered views.
+"""Vectorised ray casting of the synthetic worlds and exact optical flow between two rendered views.
 
 Convention:
     A view is a pinhole camera with intrinsics ``K`` (3,3) and pose ``T_w_c`` (4,4, float64 numpy). Pixel
     (u, v) has its ray ``d = K^-1 [u, v, 1]`` (camera frame, z-component 1), so the ray parameter of a hit
     *is* its depth z. Per-pixel work is float32 in camera-relative coordinates (box centres are shifted by
     the camera position in float64 first), so positions hundreds of metres from the origin keep
-    sub-millimetre precision. Ids: -1 sky, 0 ground, ``1 + m`` box ``m`` of the :class:`Scene`.
+    sub-millimetre precision. Ids: -1 sky, 0 ground, ``1 + m`` object ``m`` of the :class:`Scene`.
+    Objects are boxes or ellipsoids (``Scene.shape``) inscribed in their box. Tensors live on the device of
+    ``rays`` (CPU or GPU); the few per-object numbers (M of them) are computed in numpy float64 first.
 
-Boxes are culled to the screen rectangle their corners project to, binned into 8x8 pixel tiles, and the
-slab test runs on all (box, tile) pairs at once; a scatter-min keeps the nearest hit per pixel.
+Objects are culled to the screen rectangle their bounding-box corners project to (and to their drawing
+distance ``Scene.cull``), binned into 8x8 pixel tiles, and the slab test (boxes) or the quadratic (ellipsoids)
+runs on all (object, tile) pairs at once; a scatter-min keeps the nearest hit per pixel.
 """
 
 from __future__ import annotations
@@ -18,11 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dfvo.data.synthetic_scene import Scene, rot_y
+from dfvo.data.synthetic_scene import DRAW_DISTANCE, SHAPE_ELLIPSOID, Scene, rot_y
 from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT
 
 TILE = 8
-FAR = 250.0  # boxes farther than this are not drawn
+FAR = DRAW_DISTANCE  # default drawing distance of an object (its nearest possible point), metres
 NEAR = 0.05
 SKY_DEPTH = 1000.0  # depth value returned for sky pixels (they are at infinity)
 
@@ -55,10 +58,11 @@ def yaw_rotate(v: torch.Tensor, c: torch.Tensor, s: torch.Tensor, inverse: bool 
     return torch.stack([c * x + s * z, y, -s * x + c * z], -1)
 
 
-def camera_rays(K: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(H*W,3) float32 rays ``K^-1 [u, v, 1]`` of all pixel centres, row-major."""
-    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float32), torch.arange(width, dtype=torch.float32),
-                          indexing="ij")
+def camera_rays(K: torch.Tensor, height: int, width: int, device: torch.device | str | None = None) -> torch.Tensor:
+    """(H*W,3) float32 rays ``K^-1 [u, v, 1]`` of all pixel centres, row-major, on ``device`` (default: K's)."""
+    K = K.to(device) if device is not None else K
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float32, device=K.device),
+                          torch.arange(width, dtype=torch.float32, device=K.device), indexing="ij")
     x = (u - K[0, 2]) / K[0, 0]
     y = (v - K[1, 2]) / K[1, 1]
     return torch.stack([x, y, torch.ones_like(x)], -1).reshape(-1, 3)
@@ -94,22 +98,72 @@ def _screen_rects(corners_c: np.ndarray, K: np.ndarray, H: int, W: int) -> tuple
     return rect, keep
 
 
+def _tile_pairs(rect: np.ndarray, H: int, W: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor,
+                                                                                torch.Tensor]:
+    """All (object, 8x8 tile) pairs covering pixel rectangles (M',4): pair -> object row (P,), flat pixel index
+    (P,64) and an in-image mask (P,64)."""
+    r = torch.from_numpy(rect).to(device)
+    tu0, tu1, tv0, tv1 = (torch.floor(r[:, k] / TILE).long() for k in range(4))
+    ncol = tu1 - tu0 + 1
+    nt = ncol * (tv1 - tv0 + 1)
+    P = int(nt.sum())
+    pair = torch.repeat_interleave(torch.arange(len(rect), device=device), nt, output_size=P)
+    local = torch.arange(P, device=device) - torch.repeat_interleave(torch.cumsum(nt, 0) - nt, nt, output_size=P)
+    nc = ncol.index_select(0, pair)
+    tu = tu0.index_select(0, pair) + local % nc
+    tv = tv0.index_select(0, pair) + torch.div(local, nc, rounding_mode="floor")
+    off = torch.arange(TILE * TILE, device=device)
+    pu = tu[:, None] * TILE + (off % TILE)[None]
+    pv = tv[:, None] * TILE + torch.div(off, TILE, rounding_mode="floor")[None]
+    inside = (pu < W) & (pv < H)
+    return pair, pv.clamp(max=H - 1) * W + pu.clamp(max=W - 1), inside
+
+
+def _slab(o: torch.Tensor, d: tuple[torch.Tensor, ...], hf: torch.Tensor) -> torch.Tensor:
+    """Entry ray parameter (P,64) of rays ``o + t d`` (box-local, o (P,3), d 3x(P,64)) into boxes of half sizes
+    hf (P,3); inf where missed or behind ``NEAR``."""
+    t_near = t_far = None
+    for k in range(3):  # slab test, one axis at a time
+        inv = 1.0 / d[k]
+        t1 = (-hf[:, k:k + 1] - o[:, k:k + 1]) * inv
+        t2 = (hf[:, k:k + 1] - o[:, k:k + 1]) * inv
+        lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
+        t_near = lo if t_near is None else torch.maximum(t_near, lo)
+        t_far = hi if t_far is None else torch.minimum(t_far, hi)
+    hit = (t_far >= t_near) & (t_near > NEAR)
+    return torch.where(hit, t_near, torch.full_like(t_near, float("inf")))
+
+
+def _ellipsoid(o: torch.Tensor, d: tuple[torch.Tensor, ...], hf: torch.Tensor) -> torch.Tensor:
+    """As :func:`_slab` for the ellipsoids inscribed in the boxes (semi-axes hf): the nearer root of
+    ``|(o + t d) / hf|^2 = 1`` (scaling the axes keeps the ray parameter)."""
+    q = [o[:, k:k + 1] / hf[:, k:k + 1] for k in range(3)]
+    e = [d[k] / hf[:, k:k + 1] for k in range(3)]
+    a = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+    b = q[0] * e[0] + q[1] * e[1] + q[2] * e[2]
+    c = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] - 1.0
+    disc = b * b - a * c
+    t = (-b - disc.clamp_min(0).sqrt()) / a
+    return torch.where((disc >= 0) & (t > NEAR), t, torch.full_like(t, float("inf")))
+
+
 def cast(scene: Scene, frame: int, T_w_c: np.ndarray, K: torch.Tensor, rays: torch.Tensor, height: int,
          width: int) -> View:
-    """Ray-cast ground plane and boxes for one camera.
+    """Ray-cast ground plane and objects for one camera.
 
     Args:
-        scene: the world's boxes.
+        scene: the world's objects.
         frame: frame index (poses of the moving boxes).
         T_w_c: (4,4) float64 camera-to-world pose.
         K: (3,3) float32 intrinsics.
-        rays: (H*W,3) output of :func:`camera_rays` for ``K``.
+        rays: (H*W,3) output of :func:`camera_rays` for ``K``, on the device to render on.
         height, width: image size.
 
     Returns:
-        The :class:`View` with depth (inf where nothing is hit) and ids.
+        The :class:`View` with depth (inf where nothing is hit) and ids, on the device of ``rays``.
     """
     H, W = height, width
+    dev = rays.device
     R_wc = T_w_c[:3, :3]
     o = T_w_c[:3, 3]
     centre, yaw = scene.box_poses(frame)
@@ -118,62 +172,49 @@ def cast(scene: Scene, frame: int, T_w_c: np.ndarray, K: torch.Tensor, rays: tor
     corners_w = centre[:, None, :] + np.einsum("mij,mkj->mki", Rb, signs[None] * scene.half[:, None, :])
     corners_c = (corners_w - o) @ R_wc
     dist = np.linalg.norm(centre - o, axis=1) - np.linalg.norm(scene.half, axis=1)
-    rect, keep = _screen_rects(corners_c, K.double().numpy(), H, W)
-    keep &= dist < FAR
+    rect, keep = _screen_rects(corners_c, K.detach().cpu().double().numpy(), H, W)
+    keep &= dist < scene.cull
     idx = np.nonzero(keep)[0]
-    o_all = torch.from_numpy(np.einsum("mji,mj->mi", Rb, o[None] - centre)).float()
-    cos_all = torch.from_numpy(np.cos(yaw)).float()
-    sin_all = torch.from_numpy(np.sin(yaw)).float()
+    o_all = torch.from_numpy(np.einsum("mji,mj->mi", Rb, o[None] - centre)).float().to(dev)
+    cos_all = torch.from_numpy(np.cos(yaw)).float().to(dev)
+    sin_all = torch.from_numpy(np.sin(yaw)).float().to(dev)
 
     # ground plane y_w = CAMERA_HEIGHT, rays in world orientation
-    rays_w = rays @ torch.from_numpy(R_wc).float().T
+    rays_w = rays @ torch.from_numpy(R_wc).float().to(dev).T
     dy = rays_w[:, 1].contiguous()
     t_ground = (CAMERA_HEIGHT - float(o[1])) / dy
     best = torch.where((dy > 1e-6) & (t_ground > 0), t_ground, torch.full_like(dy, float("inf")))
     ids = torch.where(torch.isfinite(best), 0, -1).long()
 
     if len(idx):
-        r = rect[idx]
-        tu0 = np.floor(r[:, 0] / TILE).astype(np.int64)
-        tu1 = np.floor(r[:, 1] / TILE).astype(np.int64)
-        tv0 = np.floor(r[:, 2] / TILE).astype(np.int64)
-        tv1 = np.floor(r[:, 3] / TILE).astype(np.int64)
-        ncol = tu1 - tu0 + 1
-        nt = ncol * (tv1 - tv0 + 1)
-        P = int(nt.sum())
-        pair_box = np.repeat(np.arange(len(idx)), nt)
-        local = np.arange(P) - np.repeat(np.cumsum(nt) - nt, nt)
-        tu = tu0[pair_box] + local % ncol[pair_box]
-        tv = tv0[pair_box] + local // ncol[pair_box]
-        dv, du = np.meshgrid(np.arange(TILE), np.arange(TILE), indexing="ij")
-        pu = torch.from_numpy(tu[:, None] * TILE + du.reshape(1, -1))
-        pv = torch.from_numpy(tv[:, None] * TILE + dv.reshape(1, -1))
-        inside = (pu < W) & (pv < H)
-        pix = (pv.clamp(max=H - 1) * W + pu.clamp(max=W - 1))
-        # per-box transform camera-ray -> box-local ray, and camera origin in box frame
-        gidx = torch.from_numpy(idx[pair_box])
+        pair_box, pix, inside = _tile_pairs(rect[idx], H, W, dev)
+        # per pair: camera origin in the object's frame, half sizes, and the pixel rays in object axes
+        gidx = torch.from_numpy(idx).to(dev).index_select(0, pair_box)
         ol = o_all.index_select(0, gidx)
-        hf = torch.from_numpy(scene.half).float().index_select(0, gidx)
+        hf = torch.from_numpy(scene.half).float().to(dev).index_select(0, gidx)
         c, sn = cos_all.index_select(0, gidx)[:, None], sin_all.index_select(0, gidx)[:, None]
         flat_pix = pix.reshape(-1)
         rw = rays_w.T.contiguous()
         dxw, dyw, dzw = (rw[k].index_select(0, flat_pix).view(pix.shape) for k in range(3))
         d = (c * dxw - sn * dzw, dyw, sn * dxw + c * dzw)  # ray in box axes (R_y^T d)
-        t_near = t_far = None
-        for k in range(3):  # slab test, one axis at a time
-            inv = 1.0 / d[k]
-            t1 = (-hf[:, k:k + 1] - ol[:, k:k + 1]) * inv
-            t2 = (hf[:, k:k + 1] - ol[:, k:k + 1]) * inv
-            lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
-            t_near = lo if t_near is None else torch.maximum(t_near, lo)
-            t_far = hi if t_far is None else torch.minimum(t_far, hi)
-        hit = (t_far >= t_near) & (t_near > NEAR) & inside
-        t = torch.where(hit, t_near, torch.full_like(t_near, float("inf")))
+        ell = scene.shape[idx] == SHAPE_ELLIPSOID
+        if not ell.any():
+            t = _slab(ol, d, hf)
+        else:
+            is_ell = torch.from_numpy(ell).to(dev).index_select(0, pair_box)
+            t = torch.full_like(d[0], float("inf"))
+            for rows, fn in ((torch.nonzero(~is_ell).squeeze(1), _slab),
+                             (torch.nonzero(is_ell).squeeze(1), _ellipsoid)):
+                if len(rows):
+                    t.index_copy_(0, rows, fn(ol.index_select(0, rows), tuple(x.index_select(0, rows) for x in d),
+                                              hf.index_select(0, rows)))
+        t = torch.where(inside, t, torch.full_like(t, float("inf")))
         flat_t = t.reshape(-1)
         best = best.scatter_reduce(0, flat_pix, flat_t, reduce="amin", include_self=True)
         win = torch.isfinite(flat_t) & (flat_t == best.index_select(0, flat_pix))
-        box_id = torch.from_numpy(idx + 1)[torch.from_numpy(pair_box)][:, None].expand_as(t).reshape(-1)
-        ids[flat_pix[win]] = box_id[win]
+        box_id = (gidx + 1)[:, None].expand_as(t).reshape(-1)
+        # exact ties (touching faces): the highest id wins, whatever the thread count
+        ids = ids.scatter_reduce(0, flat_pix[win], box_id[win], reduce="amax", include_self=False)
     return View(best.reshape(H, W), ids.reshape(H, W), T_w_c, K, frame, centre, yaw, cos_all, sin_all, o_all,
                 rays_w)
 
@@ -208,9 +249,10 @@ def flow_between(scene: Scene, a: View, b: View, rays: torch.Tensor) -> tuple[to
     depth = torch.where(sky, torch.ones_like(a.depth.reshape(-1)), a.depth.reshape(-1))
     p_a = rays * depth[:, None]
     T_b_a = np.linalg.inv(b.T_w_c) @ a.T_w_c
-    R = torch.from_numpy(T_b_a[:3, :3]).float()
-    t = torch.from_numpy(T_b_a[:3, 3]).float()
-    p_b = p_a @ R.T + torch.where(sky[:, None], torch.zeros(1, 3), t[None])
+    dev = rays.device
+    R = torch.from_numpy(T_b_a[:3, :3]).float().to(dev)
+    t = torch.from_numpy(T_b_a[:3, 3]).float().to(dev)
+    p_b = p_a @ R.T + torch.where(sky[:, None], torch.zeros(1, 3, device=dev), t[None])
     # moving boxes: their own motion between the frames
     V = scene.num_dynamic
     M = len(scene.half)
@@ -224,13 +266,13 @@ def flow_between(scene: Scene, a: View, b: View, rays: torch.Tensor) -> tuple[to
             m = ids[sel] - 1
             # box-local -> camera b: p_b = R_c_w R_y(yaw_b) (p_loc - o_loc_b)
             p_rel = yaw_rotate(p_loc - b.box_o[m], b.box_cos[m], b.box_sin[m])
-            p_b[sel] = p_rel @ torch.from_numpy(b.T_w_c[:3, :3]).float()
+            p_b[sel] = p_rel @ torch.from_numpy(b.T_w_c[:3, :3]).float().to(dev)
     z = p_b[:, 2]
     zs = torch.where(z.abs() < 1e-8, torch.full_like(z, 1e-8), z)
     u = K[0, 0] * p_b[:, 0] / zs + K[0, 2]
     v = K[1, 1] * p_b[:, 1] / zs + K[1, 2]
-    grid_u = torch.arange(W, dtype=torch.float32).repeat(H)
-    grid_v = torch.arange(H, dtype=torch.float32).repeat_interleave(W)
+    grid_u = torch.arange(W, dtype=torch.float32, device=dev).repeat(H)
+    grid_v = torch.arange(H, dtype=torch.float32, device=dev).repeat_interleave(W)
     flow = torch.stack([u - grid_u, v - grid_v], 0).reshape(2, H, W)
     valid = (~sky) & (z > NEAR) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
     # occlusion: compare with the nearest same-surface neighbour depth in b

@@ -1,20 +1,25 @@
-"""Layout of the synthetic street: ground plane plus boxes (pavements, buildings, poles, parked and moving cars).
+"""Scene container of the synthetic worlds, and the street layout: ground plane plus boxes (pavements, buildings,
+poles, parked and moving cars). The highway layout is :mod:`dfvo.data.synthetic_highway_scene`.
 
 Convention:
     World frame as in :mod:`dfvo.data.synthetic_trajectory` (x right, y down, z forward; ground plane
-    ``y = CAMERA_HEIGHT``). Every box is oriented by a yaw about +y: ``T_w_o = [R_y(yaw) | centre]``;
-    its local axes are (x: across the street, y: down, z: along the street) with half sizes ``half``.
-    Ids used by the renderer: -1 sky, 0 ground, ``1 + m`` box ``m``.
+    ``y = CAMERA_HEIGHT``). Every object is oriented by a yaw about +y: ``T_w_o = [R_y(yaw) | centre]``;
+    its local axes are (x: across the street, y: down, z: along the street) with half sizes ``half``; it is
+    that box, or the ellipsoid inscribed in it (``shape``). Ids used by the renderer: -1 sky, 0 ground,
+    ``1 + m`` object ``m``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
-from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT, CORNER_RADIUS, PARKING, Route, Trajectory
+from dfvo.data.synthetic_textures import asphalt, band
+from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT, PARKING, Leg, Route, Trajectory
 
 ROAD_HALF_WIDTH = 6.5  # kerb line
 FACADE = 9.0  # building front line (pavement 2.5 m wide)
@@ -22,6 +27,11 @@ CORNER_DEPTH = 29.0  # how far the inner corner block reaches
 CURB_HEIGHT = 0.15
 
 KIND_PAVEMENT, KIND_BUILDING, KIND_POLE, KIND_CAR = 1, 2, 3, 4
+KIND_BARRIER, KIND_RAIL, KIND_TERRAIN, KIND_FOLIAGE, KIND_SIGN, KIND_WALL = 5, 6, 7, 8, 9, 10
+SHAPE_BOX, SHAPE_ELLIPSOID = 0, 1
+DRAW_DISTANCE = 250.0  # objects whose nearest possible point is farther are not drawn (unless ``cull`` says so)
+
+GroundShader = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 @dataclass
@@ -37,6 +47,10 @@ class Scene:
         seed: (M,) int texture seed.
         num_dynamic: number of moving vehicles (the last boxes).
         tracks: (N,V,4) vehicle (x, z, yaw, present) per frame.
+        shape: (M,) ``SHAPE_BOX`` or ``SHAPE_ELLIPSOID`` (default: all boxes).
+        cull: (M,) drawing distance of each object in metres (default ``DRAW_DISTANCE``; inf = always drawn).
+        ground: colour (S,3) of the ground at world points x (S,), z (S,) with footprint fp (S,) (metres per
+            pixel), before lighting (default: plain asphalt).
     """
 
     centre: np.ndarray
@@ -47,6 +61,18 @@ class Scene:
     seed: np.ndarray
     num_dynamic: int
     tracks: np.ndarray
+    shape: np.ndarray | None = None
+    cull: np.ndarray | None = None
+    ground: GroundShader | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        M = len(self.half)
+        if self.shape is None:
+            self.shape = np.full(M, SHAPE_BOX, dtype=np.int64)
+        if self.cull is None:
+            self.cull = np.full(M, DRAW_DISTANCE)
+        if self.ground is None:
+            self.ground = street_ground([])
 
     def box_poses(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(M,3) centres and (M,) yaws of all boxes at ``frame``."""
@@ -68,6 +94,29 @@ def rot_y(yaw: np.ndarray) -> np.ndarray:
     return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
 
 
+def street_ground(legs: list[Leg]) -> GroundShader:
+    """Ground colour of the street worlds: asphalt with a dashed centre line and edge lines along each leg."""
+
+    def shade(x: torch.Tensor, z: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+        g = asphalt(x, z, fp)
+        mark = torch.zeros_like(g)
+        for leg in legs:
+            sx, sz = float(leg.start[0]), float(leg.start[1])
+            hx, hz = math.sin(leg.theta), math.cos(leg.theta)
+            la = (x - sx) * hx + (z - sz) * hz
+            lt = (x - sx) * hz - (z - sz) * hx
+            lo = ROAD_HALF_WIDTH if leg.turn_in else -1e9
+            hi = leg.length - ROAD_HALF_WIDTH if leg.turn_out else 1e9
+            inl = band(la, lo, hi, fp)
+            centre = band(lt, -0.08, 0.08, fp) * band(torch.remainder(la, 6.0), 0.0, 3.0, fp)
+            edge = band(lt.abs(), 3.5, 3.65, fp)
+            mark = torch.maximum(mark, inl * torch.maximum(centre, edge))
+        g = g * (1 - mark) + 0.82 * mark
+        return g[:, None] * torch.tensor([0.97, 0.98, 1.03], device=x.device)
+
+    return shade
+
+
 def _in_clear(s: float, side: int, clear: list[tuple[float, float, int]]) -> bool:
     return any(lo <= s <= hi and (cs == 0 or cs == side) for lo, hi, cs in clear)
 
@@ -78,14 +127,14 @@ def build_scene(traj: Trajectory, seed: int) -> Scene:
     route: Route = traj.route
     rows: list[tuple] = []  # (centre xyz, yaw, half xyz, kind, colour, seed)
     legs = route.legs
-    arc = 0.5 * math.pi * CORNER_RADIUS
+    arc = 0.5 * math.pi * route.radius
     s_start = 0.0
     for li, leg in enumerate(legs):
         head = np.array([math.sin(leg.theta), math.cos(leg.theta)])
         right = np.array([math.cos(leg.theta), -math.sin(leg.theta)])
         # route arc length of along-position 0 of this leg (the previous corner point)
         if li > 0:
-            s_start = route.prims[2 * li - 1][1] + arc - CORNER_RADIUS
+            s_start = route.prims[2 * li - 1][1] + arc - route.radius
 
         def world(along: float, lat: float, _h=head, _r=right, _p=leg.start) -> tuple[float, float]:
             p = _p + along * _h + lat * _r
@@ -157,4 +206,5 @@ def build_scene(traj: Trajectory, seed: int) -> Scene:
         seed=np.array([r[5] for r in rows], dtype=np.int64),
         num_dynamic=V,
         tracks=traj.tracks,
+        ground=street_ground(legs),
     )

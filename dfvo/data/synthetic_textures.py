@@ -1,4 +1,4 @@
-"""Procedural textures of the synthetic street, evaluated on 3-D surface coordinates.
+"""Procedural textures of the synthetic worlds (street and highway), evaluated on 3-D surface coordinates.
 
 Every colour is a function of the hit point on its surface (the box-local point, the world point for the
 ground, the world ray direction for the sky) and of a fixed world light, never of the viewpoint, so a
@@ -8,18 +8,14 @@ constancy holds exactly up to pixel sampling).
 Detail that would alias (features smaller than a few pixels at the hit's distance) fades to its mean:
 ``footprint`` is the metres-per-pixel size of the hit on the surface, and noise octaves or line patterns
 finer than ~3 footprints are replaced by their average (a cheap band limit).
+
+All functions take and return tensors on one device (CPU or GPU); constants follow the inputs' device.
+This module is pure texture maths: which surface gets which material is :mod:`dfvo.data.synthetic_shading`.
 """
 
 from __future__ import annotations
 
-import math
-
 import torch
-
-from dfvo.data.synthetic_render import View, yaw_rotate
-from dfvo.data.synthetic_scene import KIND_BUILDING, KIND_CAR, KIND_PAVEMENT, KIND_POLE, ROAD_HALF_WIDTH, Scene
-
-LIGHT = torch.tensor([-0.35, -0.8, 0.45]) / math.sqrt(0.35**2 + 0.8**2 + 0.45**2)  # towards the sun, y down
 
 
 def _noise_table(size: int = 256, seed: int = 1234) -> torch.Tensor:
@@ -32,12 +28,26 @@ def _noise_table(size: int = 256, seed: int = 1234) -> torch.Tensor:
 
 
 _TABLE = _noise_table()
+_TABLES: dict[str, torch.Tensor] = {"cpu": _TABLE}
 _PERIOD = 256.0
+
+
+def _table(device: torch.device) -> torch.Tensor:
+    """The noise lattice on ``device`` (copied once per device)."""
+    key = str(device)
+    if key not in _TABLES:
+        _TABLES[key] = _TABLE.to(device)
+    return _TABLES[key]
+
+
+def _const(values: list[float], like: torch.Tensor) -> torch.Tensor:
+    """A small float constant tensor on the device of ``like``."""
+    return torch.tensor(values, dtype=torch.float32, device=like.device)
 
 
 def seed_offset(seed: torch.Tensor | int) -> tuple[torch.Tensor, torch.Tensor]:
     """Integer lattice offsets (x, y) in [0, 256) that make surfaces with different seeds look different."""
-    s = torch.as_tensor(seed, dtype=torch.float64)
+    s = torch.as_tensor(seed).to(torch.float64)
     ox = torch.floor(torch.frac(s * 0.7548776662) * _PERIOD).float()
     oy = torch.floor(torch.frac(s * 0.5698402910) * _PERIOD).float()
     return ox, oy
@@ -54,7 +64,8 @@ def lattice(x: torch.Tensor, y: torch.Tensor, seed: torch.Tensor | int, k: int =
     gx = torch.remainder(x + (ox + 37.0 * k), _PERIOD) * (2.0 / _PERIOD) - 1.0
     gy = torch.remainder(y + (oy + 91.0 * k), _PERIOD) * (2.0 / _PERIOD) - 1.0
     grid = torch.stack([gx, gy], -1).reshape(1, 1, -1, 2)
-    return torch.nn.functional.grid_sample(_TABLE, grid, mode="bilinear", align_corners=True).reshape(x.shape)
+    return torch.nn.functional.grid_sample(_table(x.device), grid, mode="bilinear",
+                                           align_corners=True).reshape(x.shape)
 
 
 def cell_random(ix: torch.Tensor, iy: torch.Tensor, seed: torch.Tensor | int) -> torch.Tensor:
@@ -88,7 +99,7 @@ def lines(c: torch.Tensor, period: float, width: float, footprint: torch.Tensor)
     """Anti-aliased periodic lines of ``width`` every ``period`` along coordinate ``c`` (1 on a line)."""
     dist = (torch.frac(c / period + 0.5) - 0.5).abs() * period
     if not isinstance(dist, torch.Tensor):
-        dist = torch.as_tensor(dist)
+        dist = torch.as_tensor(dist, device=footprint.device)
     fp = footprint.clamp_min(1e-4)
     m = ((0.5 * width - dist) / fp + 0.5).clamp(0.0, 1.0)
     fade = (period / (4.0 * fp) - 1.0).clamp(0.0, 1.0)
@@ -107,8 +118,8 @@ def sky(dirs_w: torch.Tensor) -> torch.Tensor:
     elev = (-d[:, 1]).clamp(-0.2, 1.0)
     az = torch.atan2(d[:, 0], d[:, 2])
     t = elev.clamp_min(0).sqrt()[:, None]
-    horizon = torch.tensor([0.80, 0.86, 0.93])
-    zenith = torch.tensor([0.30, 0.50, 0.85])
+    horizon = _const([0.80, 0.86, 0.93], d)
+    zenith = _const([0.30, 0.50, 0.85], d)
     base = horizon * (1 - t) + zenith * t
     fp = torch.full_like(az, 1e-3)
     c = fbm(az * 8.0, elev * 20.0, 4242, 1.0, 4, fp)
@@ -179,123 +190,65 @@ def car(h: torch.Tensor, y_up: torch.Tensor, length: torch.Tensor, height: torch
     return body * (1 - win - wheel).clamp(0, 1)[:, None] + glass * win[:, None] + 0.06 * wheel[:, None]
 
 
-def take(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """Rows ``x[index]`` for a 1-D int64 ``index`` (``index_select``, much faster than advanced indexing)."""
-    return x.index_select(0, index)
+def grass(x: torch.Tensor, z: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """(S,3) roadside verge and fields at world (x, z): green to straw patches, tufts down to decimetres."""
+    big = fbm(x, z, 23, 40.0, 3, fp)
+    n = fbm(x, z, 29, 3.0, 6, fp)
+    dry = ((big - 0.35) * 2.5).clamp(0, 1)[:, None]
+    green = _const([0.30, 0.42, 0.18], x)
+    straw = _const([0.58, 0.54, 0.33], x)
+    return (green * (1 - dry) + straw * dry) * (0.6 + 0.8 * n)[:, None]
 
 
-def lambert(normal_w: torch.Tensor) -> torch.Tensor:
-    """(S,) shading factor of world normals under the fixed sun: ambient 0.55 plus 0.45 diffuse."""
-    return 0.55 + 0.45 * (normal_w @ LIGHT).clamp_min(0)
+def terrain(u: torch.Tensor, v: torch.Tensor, seed: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """(S,3) distant hill side on surface coordinates (u, v) in metres: fields, forest patches and tree clumps."""
+    field = cell_random(torch.floor(u / 60.0), torch.floor(v / 45.0), seed)
+    forest = ((fbm(u, v, seed + 3, 50.0, 2, fp) - 0.45) * 4.0).clamp(0, 1)
+    clumps = fbm(u, v, seed + 7, 6.0, 5, fp)
+    light = torch.stack([0.42 + 0.25 * field, 0.50 + 0.12 * field, 0.24 + 0.05 * field], -1)
+    dark = _const([0.16, 0.26, 0.12], u)
+    base = light * (1 - forest)[:, None] + dark * forest[:, None]
+    return base * (0.55 + 0.9 * clumps)[:, None]
 
 
-def shade_view(scene: Scene, view: View, rays: torch.Tensor, legs: list) -> torch.Tensor:
-    """(3,H,W) colour image of one cast view; see :func:`shade_views`."""
-    return shade_views(scene, [view], rays, legs)[0]
+def foliage(u: torch.Tensor, v: torch.Tensor, seed: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """(S,3) tree crowns and hedges: dark green leaf clumps with lit and shaded spots."""
+    n = fbm(u, v, seed, 1.2, 5, fp)
+    tint = cell_random(seed.float() * 0, seed.float() * 0 + 1, seed)
+    base = torch.stack([0.14 + 0.12 * tint, 0.27 + 0.10 * tint, 0.10 + 0.04 * tint], -1)
+    return base * (0.45 + 1.1 * n)[:, None]
 
 
-def shade_views(scene: Scene, views: list[View], rays: torch.Tensor, legs: list) -> list[torch.Tensor]:
-    """Colour images (3,H,W) in [0,1] of cast views of the same size and intrinsics, shaded in one pass.
+def concrete(h: torch.Tensor, y_up: torch.Tensor, seed: torch.Tensor, joint: float, fp: torch.Tensor) -> torch.Tensor:
+    """(S,3) concrete (median barriers, noise walls): grey with stains and a vertical joint every ``joint`` m."""
+    n = fbm(h, y_up, seed, 2.0, 5, fp)
+    stain = fbm(h * 0.3, y_up, seed + 1, 4.0, 2, fp)
+    j = lines(h, joint, 0.04, fp)
+    g = (0.55 + 0.35 * (n - 0.5)) * (0.8 + 0.4 * stain) * (1 - 0.5 * j)
+    return g[:, None] * _const([1.0, 0.99, 0.95], h)
 
-    Args:
-        scene: the :class:`~dfvo.data.synthetic_scene.Scene` that was cast.
-        views: cast views (depth, ids, pose), e.g. the left and right camera of a frame.
-        rays: (H*W,3) camera rays of the views.
-        legs: the route's straight streets (lane markings).
-    """
-    H, W = views[0].depth.shape
-    n = H * W
-    ids = torch.cat([v.ids.reshape(-1) for v in views])
-    depth = torch.cat([v.depth.reshape(-1) for v in views])
-    dirs = torch.cat([v.rays_w for v in views])
-    view_of = torch.arange(len(views)).repeat_interleave(n)
-    origin = torch.stack([torch.from_numpy(v.T_w_c[:3, 3]).float() for v in views])
-    fx = float(views[0].K[0, 0])
-    img = torch.zeros(len(views) * n, 3)
-    sel = torch.nonzero(ids < 0).squeeze(1)
-    if len(sel):
-        img.index_copy_(0, sel, sky(take(dirs, sel)))
-    sel = torch.nonzero(ids == 0).squeeze(1)
-    if len(sel):
-        d = take(dirs, sel)
-        t = take(depth, sel)
-        o = take(origin, take(view_of, sel))
-        x = o[:, 0] + t * d[:, 0]
-        z = o[:, 2] + t * d[:, 2]
-        dn = d.norm(dim=-1)
-        cos = (d[:, 1].abs() / dn).clamp_min(0.08)
-        fp = t * dn / (fx * cos)
-        g = asphalt(x, z, fp)
-        mark = torch.zeros_like(g)
-        for leg in legs:
-            sx, sz = float(leg.start[0]), float(leg.start[1])
-            hx, hz = math.sin(leg.theta), math.cos(leg.theta)
-            la = (x - sx) * hx + (z - sz) * hz
-            lt = (x - sx) * hz - (z - sz) * hx
-            lo = ROAD_HALF_WIDTH if leg.turn_in else -1e9
-            hi = leg.length - ROAD_HALF_WIDTH if leg.turn_out else 1e9
-            inl = band(la, lo, hi, fp)
-            centre = band(lt, -0.08, 0.08, fp) * band(torch.remainder(la, 6.0), 0.0, 3.0, fp)
-            edge = band(lt.abs(), 3.5, 3.65, fp)
-            mark = torch.maximum(mark, inl * torch.maximum(centre, edge))
-        g = g * (1 - mark) + 0.82 * mark
-        col = g[:, None] * torch.tensor([0.97, 0.98, 1.03])
-        img.index_copy_(0, sel, col * lambert(torch.tensor([[0.0, -1.0, 0.0]])))
-    sel = torch.nonzero(ids > 0).squeeze(1)
-    if len(sel):
-        m = take(ids, sel) - 1
-        vs = take(view_of, sel)
-        flat = vs * len(scene.half) + m  # (view, box) -> row of the views' stacked box tables
-        box_cos = take(torch.cat([v.box_cos for v in views]), flat)
-        box_sin = take(torch.cat([v.box_sin for v in views]), flat)
-        box_o = take(torch.cat([v.box_o for v in views]), flat)
-        d = take(dirs, sel)
-        ds = take(depth, sel)
-        p = yaw_rotate(d * ds[:, None], box_cos, box_sin, inverse=True) + box_o  # box-local hit points
-        half = take(torch.from_numpy(scene.half).float(), m)
-        axis = (p.abs() / half).argmax(-1)
-        sgn = torch.sign(p.gather(1, axis[:, None]).squeeze(1))
-        n_loc = torch.nn.functional.one_hot(axis, 3).float() * sgn[:, None]
-        n_w = yaw_rotate(n_loc, box_cos, box_sin)
-        dn = d.norm(dim=-1)
-        cos = ((n_w * d).sum(-1).abs() / dn).clamp_min(0.15)
-        fp = ds * dn / (fx * cos)
-        kind = take(torch.from_numpy(scene.kind), m)
-        color = take(torch.from_numpy(scene.color).float(), m)
-        seed = take(torch.from_numpy(scene.seed), m)
-        y_up = half[:, 1] - p[:, 1]
-        # horizontal coordinate on side faces: along z for x-faces, along x for z-faces
-        side_x = axis == 0
-        h = torch.where(side_x, p[:, 2] + half[:, 2], p[:, 0] + half[:, 0])
-        width = torch.where(side_x, 2 * half[:, 2], 2 * half[:, 0])
-        top = axis == 1
-        col = torch.empty(len(sel), 3)
 
-        def pick(mask: torch.Tensor) -> torch.Tensor:
-            return torch.nonzero(mask).squeeze(1)
+def guard_rail(h: torch.Tensor, y_up: torch.Tensor, height: torch.Tensor, seed: torch.Tensor,
+               fp: torch.Tensor) -> torch.Tensor:
+    """(S,3) guard rail seen from the side: a galvanised W-beam on top, posts every 2 m in the dark gap below."""
+    beam = band(y_up, height - 0.33, height, fp)
+    ridges = lines(y_up - (height - 0.33), 0.11, 0.035, fp)
+    n = fbm(h, y_up, seed, 1.0, 4, fp)
+    metal = (0.62 + 0.2 * n) * (1 - 0.35 * ridges)
+    post = band((torch.remainder(h, 2.0) - 1.0).abs(), -1.0, 0.08, fp)
+    lower = 0.12 + 0.33 * post
+    g = beam * metal + (1 - beam) * lower
+    return g[:, None] * _const([0.97, 0.99, 1.02], h)
 
-        k = pick((kind == KIND_BUILDING) & ~top)
-        if len(k):
-            hk, yk, wk, halfk, ck, sk, fk = (take(x, k) for x in (h, y_up, width, half, color, seed, fp))
-            col.index_copy_(0, k, facade(hk, yk, wk, 2 * halfk[:, 1], ck, sk, fk))
-        k = pick((kind == KIND_BUILDING) & top)
-        if len(k):
-            pk = take(p, k)
-            r = fbm(pk[:, 0], pk[:, 2], take(seed, k), 3.0, 3, take(fp, k))
-            col.index_copy_(0, k, (0.25 + 0.3 * r)[:, None] * torch.tensor([1.0, 0.95, 0.9]))
-        k = pick(kind == KIND_PAVEMENT)
-        if len(k):
-            pk, halfk = take(p, k), take(half, k)
-            col.index_copy_(0, k, pavement(pk[:, 0] + halfk[:, 0], pk[:, 2] + halfk[:, 2], take(color, k),
-                                           take(seed, k), take(fp, k)))
-        k = pick(kind == KIND_POLE)
-        if len(k):
-            nz = fbm(take(h, k) * 4.0, take(y_up, k), take(seed, k), 0.8, 3, take(fp, k))
-            col.index_copy_(0, k, take(color, k) * (0.7 + 0.6 * nz)[:, None])
-        k = pick(kind == KIND_CAR)
-        if len(k):
-            hk, yk, wk, halfk, ck, sk, fk = (take(x, k) for x in (h, y_up, width, half, color, seed, fp))
-            col.index_copy_(0, k, car(hk, yk, wk, 2 * halfk[:, 1], take(side_x, k).float(), ck, sk, fk))
-        img.index_copy_(0, sel, col * lambert(n_w)[:, None])
-    img = img.clamp(0, 1)
-    return [img[i * n:(i + 1) * n].T.reshape(3, H, W) for i in range(len(views))]
+
+def sign_panel(h: torch.Tensor, y_up: torch.Tensor, width: torch.Tensor, height: torch.Tensor, color: torch.Tensor,
+               seed: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """(S,3) road sign: coloured panel, white border, rows of white "lettering" blocks."""
+    border = 1 - band(h, 0.12, width - 0.12, fp) * band(y_up, 0.12, height - 0.12, fp)
+    row = torch.floor(y_up / 0.45)
+    col = torch.floor(h / 0.28)
+    on = (cell_random(col, row, seed) > 0.45).float()
+    glyph = on * band(torch.remainder(y_up, 0.45), 0.12, 0.36, fp) * band(torch.remainder(h, 0.28), 0.03, 0.24, fp)
+    glyph = glyph * band(h, 0.35, width - 0.35, fp) * band(y_up, 0.3, height - 0.3, fp)
+    white = torch.maximum(border, glyph)[:, None]
+    return color * (1 - white) + 0.92 * white

@@ -20,7 +20,11 @@ from kornia.core.check import KORNIA_CHECK_SHAPE
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float, batch_size: int = 1,
                       dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Build (B,3,3) intrinsics from focal lengths and principal point (pixels)."""
+    """Build intrinsics from focal lengths and principal point.
+
+    Convention:
+        ``fx, fy, cx, cy`` in pixels -> (B,3,3) ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in ``dtype``.
+    """
     K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
     return K.unsqueeze(0).repeat(batch_size, 1, 1)
 
@@ -36,6 +40,9 @@ def resize_intrinsics(K: torch.Tensor, src_hw: tuple[int, int], dst_hw: tuple[in
     Returns:
         Intrinsics of the resized image, same shape as ``K``:
         ``fx' = fx*sx``, ``cx' = (cx + 0.5)*sx - 0.5`` (and likewise for y) with ``sx = W'/W``.
+
+    Convention:
+        Pixel centres at integer coordinates, ``align_corners=False`` resampling (see the module docstring).
     """
     sy = dst_hw[0] / src_hw[0]
     sx = dst_hw[1] / src_hw[1]
@@ -55,6 +62,9 @@ def crop_intrinsics(K: torch.Tensor, top: int, left: int) -> torch.Tensor:
         K: (B,3,3) or (3,3) intrinsics.
         top: first kept row of the source image.
         left: first kept column of the source image.
+
+    Convention:
+        Returns intrinsics of the same shape with ``cx' = cx - left``, ``cy' = cy - top`` (pixels).
     """
     out = K.clone()
     out[..., 0, 2] = K[..., 0, 2] - left
@@ -64,7 +74,11 @@ def crop_intrinsics(K: torch.Tensor, top: int, left: int) -> torch.Tensor:
 
 def pixel_grid(height: int, width: int, device: torch.device | None = None,
                dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Pixel coordinates of every pixel centre, (H,W,2) with [..., 0] = u (column), [..., 1] = v (row)."""
+    """Pixel coordinates of every pixel centre.
+
+    Convention:
+        (H,W,2) with ``[..., 0] = u`` (column) and ``[..., 1] = v`` (row), pixel centres at integers.
+    """
     v, u = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
                           torch.arange(width, device=device, dtype=dtype), indexing="ij")
     return torch.stack([u, v], dim=-1)
@@ -80,6 +94,9 @@ def backproject_points(pixels: torch.Tensor, depth: torch.Tensor, K: torch.Tenso
 
     Returns:
         (B,N,3) points ``depth * K^-1 [u, v, 1]``.
+
+    Convention:
+        Camera frame of ``K``'s image: +z forward, x right, y down; zero skew assumed.
     """
     KORNIA_CHECK_SHAPE(pixels, ["B", "N", "2"])
     KORNIA_CHECK_SHAPE(depth, ["B", "N"])
@@ -102,6 +119,9 @@ def project_points(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-8) -> 
     Returns:
         pixels (B,N,2) and depth (B,N). Points behind the camera still get a (meaningless) pixel; use
         ``depth > 0`` to mask them.
+
+    Convention:
+        ``[u, v] = [fx x / z + cx, fy y / z + cy]`` (zero skew), camera frame +z forward.
     """
     KORNIA_CHECK_SHAPE(points, ["B", "N", "3"])
     KORNIA_CHECK_SHAPE(K, ["B", "3", "3"])
@@ -113,26 +133,36 @@ def project_points(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-8) -> 
 
 
 def transform_points(T_a_b: torch.Tensor, points_b: torch.Tensor) -> torch.Tensor:
-    """Map (B,N,3) points from frame b to frame a with (B,4,4) ``T_a_b``."""
+    """Map points from frame b into frame a.
+
+    Convention:
+        ``T_a_b`` (B,4,4) maps frame-b points into frame a; ``points_b`` (B,N,3) -> (B,N,3) in frame a.
+    """
     KORNIA_CHECK_SHAPE(T_a_b, ["B", "4", "4"])
     KORNIA_CHECK_SHAPE(points_b, ["B", "N", "3"])
     return points_b @ T_a_b[:, :3, :3].transpose(1, 2) + T_a_b[:, None, :3, 3]
 
 
-def rigid_flow(depth: torch.Tensor, T_j_i: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """Optical flow of a static scene from camera i to camera j.
+def rigid_flow(depth: torch.Tensor, T_cur_prev: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Optical flow of a static scene from the previous image to the current one.
 
     Args:
-        depth: (B,1,H,W) depth of image i.
-        T_j_i: (B,4,4) pose mapping points of camera i into camera j (``inv(T_w_j) @ T_w_i``).
+        depth: (B,1,H,W) depth of the previous image.
+        T_cur_prev: (B,4,4) pose mapping points of the previous camera into the current camera
+            (``inv(T_w_cur) @ T_w_prev``).
         K: (B,3,3) intrinsics (shared by both images).
 
     Returns:
-        (B,2,H,W) flow_i→j in pixels: where each pixel of image i lands in image j, minus its position.
+        (B,2,H,W) flow prev→cur in pixels: where each pixel of the previous image lands in the current one,
+        minus its position.
+
+    Convention:
+        "prev"/"cur" name the flow's source and target: for the backward flow pass the current image's depth
+        and ``T_prev_cur``.
     """
     KORNIA_CHECK_SHAPE(depth, ["B", "1", "H", "W"])
     B, _, H, W = depth.shape
     grid = pixel_grid(H, W, depth.device, depth.dtype).reshape(1, H * W, 2).expand(B, -1, -1)
     pts_i = backproject_points(grid, depth.reshape(B, H * W), K)
-    pix_j, _ = project_points(transform_points(T_j_i, pts_i), K)
+    pix_j, _ = project_points(transform_points(T_cur_prev, pts_i), K)
     return (pix_j - grid).permute(0, 2, 1).reshape(B, 2, H, W)

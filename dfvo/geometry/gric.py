@@ -25,7 +25,12 @@ MODEL_DIMS = {"E": (3, 5), "F": (3, 7), "H": (2, 8)}
 
 def gric(residuals_sq: torch.Tensor, mask: torch.Tensor, d: int, k: int, sigma: float = 0.8,
          r: int = 4) -> torch.Tensor:
-    """GRIC score (B,) of (B,N) squared residuals in pixels^2 over the valid rows ``mask`` (B,N)."""
+    """GRIC score of squared residuals over the valid rows.
+
+    Convention:
+        residuals_sq (B,N) in pixels^2 (non-finite: capped), mask (B,N) bool -> (B,) float64, lower is better;
+        ``d``, ``k`` from :data:`MODEL_DIMS`, ``sigma`` the residual standard deviation in pixels.
+    """
     KORNIA_CHECK_SHAPE(residuals_sq, ["B", "N"])
     KORNIA_CHECK(mask.shape == residuals_sq.shape, f"gric: mask {tuple(mask.shape)} must match residuals "
                                                    f"{tuple(residuals_sq.shape)}")
@@ -41,7 +46,12 @@ def gric(residuals_sq: torch.Tensor, mask: torch.Tensor, d: int, k: int, sigma: 
 
 def gric_essential(E: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor,
                    sigma: float = 0.8) -> torch.Tensor:
-    """GRIC (B,) of essential matrices (B,3,3) on (B,N,2) pixel pairs, Sampson residuals through F."""
+    """GRIC of essential matrices on pixel pairs, with Sampson residuals through ``F = K^-T E K^-1``.
+
+    Convention:
+        E (B,3,3) with ``x_j^T E x_i = 0`` (normalised coordinates), K (B,3,3), pts_i / pts_j (B,N,2) pixels in
+        images i (previous) and j (current), mask (B,N) -> (B,) float64.
+    """
     Kinv = torch.linalg.inv(K.to(torch.float64))
     F = Kinv.transpose(-1, -2) @ E.to(torch.float64) @ Kinv
     res = sampson_sq(F[:, None], pts_i.to(torch.float64), pts_j.to(torch.float64))[:, 0]
@@ -50,6 +60,11 @@ def gric_essential(E: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor, pts_j:
 
 def gric_homography(H: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor,
                     sigma: float = 0.8) -> torch.Tensor:
-    """GRIC (B,) of homographies (B,3,3) on (B,N,2) pixel pairs, Torr's geometric transfer residuals."""
+    """GRIC of homographies on pixel pairs, with Torr's geometric transfer residuals.
+
+    Convention:
+        H (B,3,3) with ``x_j ~ H x_i`` (pixels, i previous, j current), pts_i / pts_j (B,N,2), mask (B,N)
+        -> (B,) float64.
+    """
     res = homography_error_sq(H.to(torch.float64)[:, None], pts_i.to(torch.float64), pts_j.to(torch.float64))[:, 0]
     return gric(res, mask, *MODEL_DIMS["H"], sigma=sigma)

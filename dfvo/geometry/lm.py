@@ -1,9 +1,9 @@
 """Levenberg-Marquardt refinement of camera poses on SE(3) from 3-D/2-D correspondences.
 
 Convention:
-    ``points_3d`` (B,N,3) are in frame i, ``pixels`` (B,N,2) in image j, ``K`` (B,3,3) the intrinsics of image
-    j and ``T_j_i`` (B,4,4) maps frame-i points into camera j. The pose is perturbed on the left,
-    ``T <- Exp(delta) T`` with ``delta = (rho, phi)`` (translation first), retracted as
+    ``points_3d`` (B,N,3) are in frame i (previous), ``pixels`` (B,N,2) in image j (current), ``K`` (B,3,3)
+    the intrinsics of image j and ``T_cur_prev`` (B,4,4) maps frame-i points into camera j. The pose is
+    perturbed on the left, ``T <- Exp(delta) T`` with ``delta = (rho, phi)`` (translation first), retracted as
     ``R <- exp(phi) R, t <- exp(phi) t + rho`` which has the same first-order model
     ``X_c <- X_c + rho + phi x X_c``. All arithmetic is float64 internally.
 """
@@ -19,13 +19,16 @@ def reprojection_residuals(T: torch.Tensor, points_3d: torch.Tensor, pixels: tor
     """Residuals ``project(K, T X) - pixel``.
 
     Args:
-        T: (B,4,4) ``T_j_i``.
+        T: (B,4,4) ``T_cur_prev``.
         points_3d: (B,N,3) points in frame i.
         pixels: (B,N,2) observed pixels in image j.
         K: (B,3,3) intrinsics of image j.
 
     Returns:
         residuals (B,N,2) in pixels, and (B,N,3) points in camera j. Points with depth <= eps get a huge residual.
+
+    Convention:
+        ``project(K, X) = K[:2, :2] [x / z, y / z] + K[:2, 2]`` (skew included); see the module docstring.
     """
     Xc = points_3d @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
     z = Xc[..., 2:3]
@@ -46,14 +49,17 @@ def refine_pose_lm(points_3d: torch.Tensor, pixels: torch.Tensor, weights: torch
         pixels: (B,N,2) pixels in image j.
         weights: (B,N) non-negative weights (a bool mask works: 0/1).
         K: (B,3,3) intrinsics of image j.
-        T_init: (B,4,4) initial ``T_j_i``.
+        T_init: (B,4,4) initial ``T_cur_prev``.
         iterations: maximum LM iterations (each batch element stops improving on its own).
         lambda_init: initial damping (relative to the diagonal of the normal matrix).
         tol: relative cost decrease below which an element counts as converged (an element also stops once
             its damping has grown past 1e4, i.e. after repeated rejected steps at a minimum).
 
     Returns:
-        T: (B,4,4) refined ``T_j_i`` (dtype of ``T_init``), and the final weighted cost (B,) in pixels^2.
+        T: (B,4,4) refined ``T_cur_prev`` (dtype of ``T_init``), and the final weighted cost (B,) in pixels^2.
+
+    Convention:
+        Left perturbation ``T <- Exp(delta) T`` (see the module docstring); float64 internally.
     """
     out_dtype = T_init.dtype
     X = points_3d.to(torch.float64)

@@ -1,19 +1,20 @@
 """Perspective-n-Point with batched RANSAC and a final Levenberg-Marquardt refinement on SE(3).
 
 Convention:
-    ``points_3d`` (B,N,3) are in frame i (e.g. back-projected from frame i's depth), ``pixels`` (B,N,2) their
-    observations in image j, ``mask`` (B,N) marks real rows of padded inputs, ``K`` (B,3,3) are the
-    intrinsics of image j in pixels. The result ``T_j_i`` (B,4,4) maps frame-i points into camera j, so
-    ``pixels ~ K (R X + t)``.
+    ``points_3d`` (B,N,3) are in frame i (the previous frame, e.g. back-projected from its depth), ``pixels``
+    (B,N,2) their observations in image j (the current frame), ``mask`` (B,N) marks real rows of padded
+    inputs, ``K`` (B,3,3) are the intrinsics of image j in pixels. The result ``T_cur_prev`` (B,4,4) maps
+    frame-i points into camera j, so ``pixels ~ K (R X + t)``.
 
-Algorithm, per frame pair and all in batch:
-    1. ``repeats * iterations`` random 6-point subsets of the masked rows (drawn without replacement).
+Algorithm, per frame pair and all in batch (the hypothesise-and-verify loop of :mod:`dfvo.geometry.ransac`):
+    1. ``repeats * iterations`` random 6-point subsets of the masked rows (drawn without replacement, frame b
+       from ``generators[b]``).
     2. Each subset gives two hypotheses solved in float64 in one batched call each: the 12-unknown DLT
        (general 3-D points) and a plane-induced homography decomposed into a pose (points on or near a plane,
        where the DLT is degenerate); the one with the smaller reprojection error on its own six points is kept.
-    3. All hypotheses are scored at once: inliers are rows with reprojection error < ``threshold_px`` and
-       positive depth in camera j. Each repeat keeps its best hypothesis and the repeat with most inliers wins
-       (the official DF-VO scheme; equal to the best of all hypotheses, ties to the earlier one).
+    3. All hypotheses are scored on all rows (float32): inliers are rows with reprojection error
+       < ``threshold_px`` and positive depth in camera j. Each repeat keeps its best hypothesis and the best
+       repeat wins (most inliers, then lowest truncated error, then the earlier one).
     4. Robust refinement of the reprojection error: ``refine_rounds`` IRLS rounds of Levenberg-Marquardt with
        Cauchy weights ``1 / (1 + e^2/thr^2)`` (zero beyond ``3 thr``), then the inliers of the final pose.
     A frame with fewer than ``min_points`` usable rows, or whose best model has fewer than ``min_points``
@@ -28,6 +29,7 @@ import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.lm import refine_pose_lm, reprojection_residuals
+from dfvo.geometry.ransac import hypothesise_and_verify, pick_best
 
 SAMPLE_SIZE = 6
 
@@ -36,36 +38,21 @@ SAMPLE_SIZE = 6
 class PnPResult:
     """Result of :func:`solve_pnp_ransac`.
 
+    Convention:
+        ``T_cur_prev`` maps frame-i (previous) points into camera j (current): ``pixels ~ K (R X + t)``.
+
     Attributes:
-        T_j_i: (B,4,4) pose mapping frame-i points into camera j (identity where ``success`` is False).
+        T_cur_prev: (B,4,4) pose mapping frame-i (previous) points into camera j (current); identity where
+            ``success`` is False.
         inliers: (B,N) bool, rows within the reprojection threshold of the final pose.
         num_inliers: (B,) long.
         success: (B,) bool.
     """
 
-    T_j_i: torch.Tensor
+    T_cur_prev: torch.Tensor
     inliers: torch.Tensor
     num_inliers: torch.Tensor
     success: torch.Tensor
-
-
-def _sample_without_replacement(n: torch.Tensor, shape: tuple[int, int], k: int,
-                                generator: torch.Generator | None) -> torch.Tensor:
-    """Uniform k-subsets of ``range(n[b])``: (B,S,k) long, distinct within each subset (needs n >= k)."""
-    B, S = shape
-    gen_device = generator.device if generator is not None else n.device
-    u = torch.rand((B, S, k), generator=generator, device=gen_device, dtype=torch.float64).to(n.device)
-    chosen: list[torch.Tensor] = []
-    nf = n.to(torch.float64)[:, None]
-    for j in range(k):
-        r = torch.floor(u[..., j] * (nf - j)).long().clamp_min(0)
-        r = torch.minimum(r, (n[:, None] - j - 1).clamp_min(0))
-        if chosen:
-            prev = torch.sort(torch.stack(chosen, -1), dim=-1).values
-            for m in range(prev.shape[-1]):  # r-th element not yet chosen: skip past the chosen ones in order
-                r = r + (r >= prev[..., m]).long()
-        chosen.append(r)
-    return torch.stack(chosen, -1)
 
 
 def _normalise_points(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -158,33 +145,22 @@ def _minimal_hypotheses(X: torch.Tensor, xn: torch.Tensor) -> tuple[torch.Tensor
     return best_R, t
 
 
-def _count_inliers(R: torch.Tensor, t: torch.Tensor, X: torch.Tensor, x: torch.Tensor, K: torch.Tensor,
-                   mask: torch.Tensor, threshold_px: float, chunk: int | None = None) -> torch.Tensor:
-    """Inlier counts (B,S) of hypotheses R (B,S,3,3), t (B,S,3) on all rows (float32 scoring).
+def _reprojection_error_sq(Rt: torch.Tensor, X: torch.Tensor, x: torch.Tensor, K: torch.Tensor,
+                           exact: bool) -> torch.Tensor:
+    """Squared reprojection errors (B,C,N) in pixels of poses ``Rt = [R | t]`` (B,C,3,4) on all rows.
 
-    With ``p = P [X; 1]`` and ``P = K [R | t]``, a row is an inlier when ``p_z > 0`` and
-    ``(p_x - u p_z)^2 + (p_y - v p_z)^2 < thr^2 p_z^2`` (no division). Hypotheses are scored in chunks so the
-    (B,chunk,3,N) products stay in cache.
+    ``inf`` where the point is not in front of camera j (depth <= 1e-9). Float32 unless ``exact`` (float64).
     """
-    B, S = R.shape[:2]
-    if chunk is None:  # about 2e5 scored rows per chunk
-        chunk = max(1, 200_000 // max(B * X.shape[1], 1))
-    P = (K.unsqueeze(1) @ torch.cat([R, t.unsqueeze(-1)], -1)).float()  # (B,S,3,4)
-    Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).float().transpose(1, 2).contiguous()  # (B,4,N)
-    u = x[..., 0].float().unsqueeze(1)
-    v = x[..., 1].float().unsqueeze(1)
-    thr2 = threshold_px**2
-    maskf = mask[:, None, :]
-    counts = []
-    for s0 in range(0, S, chunk):
-        Pc = P[:, s0 : s0 + chunk]
-        p = (Pc.reshape(B, -1, 4) @ Xh).reshape(B, Pc.shape[1], 3, -1)  # (B,c,3,N), one plain bmm
-        z = p[:, :, 2]
-        eu = p[:, :, 0] - u * z
-        ev = p[:, :, 1] - v * z
-        inl = (eu * eu + ev * ev < thr2 * z * z) & (z > 1e-9) & maskf
-        counts.append(inl.sum(-1))
-    return torch.cat(counts, 1)
+    dtype = torch.float64 if exact else torch.float32
+    B, C = Rt.shape[:2]
+    P = (K.unsqueeze(1) @ Rt).to(dtype)  # (B,C,3,4)
+    Xh = torch.cat([X, torch.ones_like(X[..., :1])], -1).to(dtype).transpose(1, 2)  # (B,4,N)
+    p = (P.transpose(1, 2).reshape(B, 3 * C, 4) @ Xh).view(B, 3, C, -1)  # one plain bmm, rows of p contiguous
+    z = p[:, 2]
+    eu = torch.addcmul(p[:, 0], x[..., 0].to(dtype).unsqueeze(1), z, value=-1.0)  # (u_proj - u) z
+    ev = torch.addcmul(p[:, 1], x[..., 1].to(dtype).unsqueeze(1), z, value=-1.0)
+    err = (eu * eu).addcmul_(ev, ev).div_(z * z)
+    return err.masked_fill_(z <= 1e-9, float("inf"))
 
 
 def _inliers_of(T: torch.Tensor, X: torch.Tensor, x: torch.Tensor, K: torch.Tensor, mask: torch.Tensor,
@@ -202,25 +178,30 @@ def solve_pnp_ransac(
     iterations: int = 100,
     repeats: int = 5,
     min_points: int = 6,
-    generator: torch.Generator | None = None,
+    generators: list[torch.Generator] | None = None,
     refine_rounds: int = 4,
 ) -> PnPResult:
     """Camera pose from 3-D/2-D correspondences with batched RANSAC and LM refinement.
 
     Args:
-        points_3d: (B,N,3) points in frame i.
-        pixels: (B,N,2) observed positions in image j, pixels.
+        points_3d: (B,N,3) points in frame i (previous).
+        pixels: (B,N,2) observed positions in image j (current), pixels.
         mask: (B,N) bool, real rows of the padded inputs.
         K: (B,3,3) intrinsics of image j.
         threshold_px: inlier reprojection threshold in pixels (strict ``<``).
         iterations: hypotheses per repeat.
-        repeats: RANSAC repeats; the one with most inliers wins.
+        repeats: RANSAC repeats; the best one wins.
         min_points: minimum usable rows and minimum inliers for success (at least 6 are always required).
-        generator: random generator for reproducible sampling (draws happen on its device, then move).
+        generators: one ``torch.Generator`` per frame for reproducible sampling (draws happen on each
+            generator's device, then move); None: the global RNG. A frame's result depends only on its own
+            generator and rows (batched == one at a time, padding ignored).
         refine_rounds: IRLS rounds (weights recomputed, then LM) of the final refinement.
 
+    Convention:
+        See the module docstring: ``pixels ~ K (R X + t)`` with ``[R | t] = T_cur_prev``.
+
     Returns:
-        :class:`PnPResult` with ``T_j_i`` (B,4,4) in the dtype of ``points_3d`` (float32 unless float64).
+        :class:`PnPResult` with ``T_cur_prev`` (B,4,4) in the dtype of ``points_3d`` (float32 unless float64).
     """
     KORNIA_CHECK_SHAPE(points_3d, ["B", "N", "3"])
     KORNIA_CHECK_SHAPE(pixels, ["B", "N", "2"])
@@ -251,31 +232,27 @@ def solve_pnp_ransac(
                          torch.zeros(B, dtype=torch.bool, device=device))
     Kd = torch.where(usable[:, None, None], Kd, torch.eye(3, dtype=torch.float64, device=device))
 
-    # 1. sample subsets among the valid rows (moved to the front, original order kept)
-    order = torch.sort((~m).to(torch.uint8), dim=1, stable=True).indices
-    S = repeats * iterations
-    local = _sample_without_replacement(n_valid.clamp_min(SAMPLE_SIZE), (B, S), SAMPLE_SIZE, generator)
-    rows = torch.gather(order, 1, local.reshape(B, -1)).reshape(B, S, SAMPLE_SIZE)
-    Xsub = torch.gather(X, 1, rows.reshape(B, -1, 1).expand(-1, -1, 3)).reshape(B, S, SAMPLE_SIZE, 3)
-    xsub = torch.gather(x, 1, rows.reshape(B, -1, 1).expand(-1, -1, 2)).reshape(B, S, SAMPLE_SIZE, 2)
     Kinv = torch.linalg.inv(Kd)
-    xn = torch.cat([xsub, torch.ones_like(xsub[..., :1])], -1) @ Kinv[:, None].transpose(-1, -2)
-    xn = xn[..., :2] / xn[..., 2:3]
 
-    # 2. minimal hypotheses, 3. scoring
-    R, t = _minimal_hypotheses(Xsub, xn)
-    bad = ~(torch.isfinite(R).all((-1, -2)) & torch.isfinite(t).all(-1))
-    R = torch.where(bad[..., None, None], torch.eye(3, dtype=R.dtype, device=device), R)
-    t = torch.where(bad[..., None], torch.zeros_like(t), t)
-    counts = _count_inliers(R, t, X, x, Kd, m, threshold_px)
-    counts = torch.where(bad, -1, counts).reshape(B, repeats, iterations)
-    per_repeat, arg_in_repeat = counts.max(-1)  # best hypothesis of each repeat
-    best_repeat = per_repeat.argmax(-1)  # repeat with most inliers (first on ties)
-    best = best_repeat * iterations + torch.gather(arg_in_repeat, 1, best_repeat[:, None]).squeeze(1)
-    bi = torch.arange(B, device=device)
+    def solve(rows: torch.Tensor) -> torch.Tensor:  # (B,S,6) rows -> (B,S,1,3,4) poses [R | t]
+        S = rows.shape[1]
+        Xsub = torch.gather(X, 1, rows.reshape(B, -1, 1).expand(-1, -1, 3)).reshape(B, S, SAMPLE_SIZE, 3)
+        xsub = torch.gather(x, 1, rows.reshape(B, -1, 1).expand(-1, -1, 2)).reshape(B, S, SAMPLE_SIZE, 2)
+        xn = torch.cat([xsub, torch.ones_like(xsub[..., :1])], -1) @ Kinv[:, None].transpose(-1, -2)
+        R, t = _minimal_hypotheses(Xsub, xn[..., :2] / xn[..., 2:3])
+        return torch.cat([R, t[..., None]], -1)[:, :, None]
+
+    def residual(Rt: torch.Tensor, rows: torch.Tensor | None, exact: bool) -> torch.Tensor:
+        return _reprojection_error_sq(Rt, X, x, Kd, exact)
+
+    # 1.-3. sampling, minimal hypotheses, scoring; the best repeat winner
+    thr_sq = float(threshold_px) ** 2
+    win = hypothesise_and_verify(m, SAMPLE_SIZE, solve, residual, thr_sq, iterations, repeats, generators)
+    Rt, _, _ = pick_best(win.models, win.err_sq, thr_sq, m)
+    Rt = torch.where(torch.isfinite(Rt).all(-1).all(-1)[:, None, None], Rt,
+                     torch.eye(4, dtype=torch.float64, device=device)[:3])
     T0 = torch.eye(4, dtype=torch.float64, device=device).repeat(B, 1, 1)
-    T0[:, :3, :3] = R[bi, best]
-    T0[:, :3, 3] = t[bi, best]
+    T0[:, :3] = Rt
 
     # 4. robust refinement: IRLS rounds of LM with Cauchy weights 1 / (1 + e^2 / thr^2), cut off at 3 thr.
     # (LM on the hard 1-px inlier set alone gets stuck on self-consistent but truncated inlier sets.)

@@ -1,17 +1,20 @@
-"""Two-view geometry on padded, batched correspondences: essential and homography RANSAC, decomposition
-with cheirality, triangulation, Sampson residuals.
+"""Two-view geometry on padded, batched correspondences: essential and homography RANSAC (with local
+optimisation), decomposition with cheirality, closed-form two-view depths, Sampson and homography residuals.
 
 Convention:
     ``pts_i`` (B,N,2) are pixels in image i (the previous frame), ``pts_j`` (B,N,2) the matching pixels in
     image j (the current frame); ``mask`` (B,N) bool marks the real rows of the padding. ``K`` (B,3,3) are
     the intrinsics (same camera for both images). The essential matrix satisfies ``x_j^T E x_i = 0`` on
-    normalised coordinates ``x = K^-1 [u, v, 1]^T``, and its decomposition ``(R, t)`` is ``T_j_i``: it maps
-    frame-i points into camera j (``t`` has unit norm). Invert it to get ``T_prev_cur``.
+    normalised coordinates ``x = K^-1 [u, v, 1]^T``, and its decomposition ``(R, t)`` is ``T_cur_prev``: it
+    maps frame-i (previous) points into camera j (current), ``t`` has unit norm. Invert it to get
+    ``T_prev_cur``.
 
 Randomness: each frame of the batch draws from its own ``torch.Generator`` (a list, one per frame), so a
-frame's result does not depend on which other frames share its batch (batched == unbatched).
+frame's result depends neither on the other frames of its batch nor on its padding (see
+:mod:`dfvo.geometry.ransac`).
 
-Everything runs in float64 internally (the five-point solver of kornia is float64 anyway).
+Everything runs in float64 internally (the five-point solver of kornia is float64 anyway), except the
+float32 ranking of essential-matrix candidates on a row subset.
 """
 
 from __future__ import annotations
@@ -20,16 +23,23 @@ from dataclasses import dataclass
 
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
-from kornia.geometry.epipolar import decompose_essential_matrix, find_essential, triangulate_points
+from kornia.geometry.epipolar import decompose_essential_matrix, find_essential
 from kornia.geometry.homography import find_homography_dlt
 
+from dfvo.geometry.essential_refine import refine_essential
+from dfvo.geometry.ransac import hypothesise_and_verify, pick_best, rank_models, score_models
+
 __all__ = ["TwoViewResult", "normalise_points", "sampson_sq", "homography_error_sq", "find_essential_ransac",
-           "find_homography_ransac", "decompose_essential", "triangulate", "ray_depths", "frame_rand"]
+           "find_homography_ransac", "decompose_essential", "ray_depths"]
 
 
 @dataclass
 class TwoViewResult:
     """Result of :func:`find_essential_ransac` / :func:`find_homography_ransac`.
+
+    Convention:
+        i is the previous image, j the current one; E satisfies ``x_j^T E x_i = 0`` (normalised coordinates),
+        H maps pixels ``x_j ~ H x_i``.
 
     Attributes:
         model: (B,3,3) essential matrix (normalised coordinates) or homography (pixels, ``x_j ~ H x_i``).
@@ -56,27 +66,12 @@ def _check(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torc
                      f"{'' if K is None else f', K {tuple(K.shape)}'} must share (B,N)")
 
 
-def frame_rand(generators: list[torch.Generator] | None, batch: int, shape: tuple[int, ...],
-               device: torch.device) -> torch.Tensor:
-    """(B,*shape) uniform float64 numbers, frame b drawn from ``generators[b]`` (on the generator's device)."""
-    if generators is None:
-        return torch.rand((batch, *shape), dtype=torch.float64, device=device)
-    KORNIA_CHECK(len(generators) == batch, f"frame_rand: {len(generators)} generators for a batch of {batch}")
-    return torch.stack([torch.rand(shape, generator=g, dtype=torch.float64, device=g.device).to(device)
-                        for g in generators])
-
-
-def _sample_rows(mask: torch.Tensor, num_samples: int, size: int,
-                 generators: list[torch.Generator] | None) -> torch.Tensor:
-    """(B,S,size) long: per sample, ``size`` distinct rows among the valid rows of each frame."""
-    B, N = mask.shape
-    u = frame_rand(generators, B, (num_samples, N), mask.device)
-    u = torch.where(mask[:, None, :], u, torch.full_like(u, -1.0))
-    return u.topk(size, dim=-1).indices
-
-
 def normalise_points(pts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """(B,N,2) pixels -> (B,N,2) normalised camera coordinates ``K^-1 [u, v, 1]``."""
+    """Pixels to normalised camera coordinates ``K^-1 [u, v, 1]``.
+
+    Convention:
+        pts (B,N,2) pixels, K (B,3,3) their intrinsics (skew allowed) -> (B,N,2) in the dtype of ``pts``.
+    """
     Kd = K.to(pts.dtype)
     x = (pts[..., 0] - Kd[:, None, 0, 2] - Kd[:, None, 0, 1] * (pts[..., 1] - Kd[:, None, 1, 2]) / Kd[:, None, 1, 1])
     return torch.stack([x / Kd[:, None, 0, 0], (pts[..., 1] - Kd[:, None, 1, 2]) / Kd[:, None, 1, 1]], -1)
@@ -85,8 +80,11 @@ def normalise_points(pts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 def sampson_sq(F: torch.Tensor, x_i: torch.Tensor, x_j: torch.Tensor) -> torch.Tensor:
     """Squared Sampson distance of (B,N,2) points to (B,M,3,3) epipolar matrices -> (B,M,N).
 
-    With ``F = K^-T E K^-1`` and pixel coordinates this is the squared Sampson distance in pixels (GRIC's
-    residual for E); with ``E`` and normalised coordinates it is the normalised one (RANSAC's test).
+    Convention:
+        ``x_j^T F x_i = 0`` with ``x_i`` in image i (previous) and ``x_j`` in image j (current). With
+        ``F = K^-T E K^-1`` and pixel coordinates this is the squared Sampson distance in pixels (GRIC's
+        residual for E); with ``E`` and normalised coordinates it is the normalised one (RANSAC's test).
+        Computed in the dtype of the inputs.
     """
     B, M = F.shape[:2]
     N = x_i.shape[1]
@@ -104,6 +102,9 @@ def homography_error_sq(H: torch.Tensor, x_i: torch.Tensor, x_j: torch.Tensor) -
 
     The two algebraic residuals ``e`` of ``x_j x (H x_i) = 0`` are weighted by ``(J J^T)^-1`` with ``J`` their
     Jacobian with respect to both points: the Sampson approximation of the reprojection error in both images.
+
+    Convention:
+        ``x_j ~ H x_i``: ``x_i`` pixels in image i (previous), ``x_j`` in image j (current).
     """
     u1, v1 = x_i[:, None, :, 0], x_i[:, None, :, 1]
     u2, v2 = x_j[:, None, :, 0], x_j[:, None, :, 1]
@@ -121,67 +122,55 @@ def homography_error_sq(H: torch.Tensor, x_i: torch.Tensor, x_j: torch.Tensor) -
     return (s22 * e1 * e1 - 2 * s12 * e1 * e2 + s11 * e2 * e2) / det
 
 
-def _best_candidates(err: torch.Tensor, thr_sq: float, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """err (B,M,N) -> (inlier counts (B,M), MSAC-style tie-break score (B,M)); NaN models score worst."""
-    valid = mask[:, None, :] & torch.isfinite(err)
-    inl = valid & (err < thr_sq)
-    count = inl.sum(-1)
-    trunc = torch.where(valid, err.clamp(max=thr_sq), torch.full_like(err, thr_sq)).sum(-1)
-    return count, trunc
+def _fail(B: int, N: int, eye: bool, device: torch.device) -> TwoViewResult:
+    model = torch.eye(3, dtype=torch.float64, device=device).repeat(B, 1, 1) if eye else \
+        torch.zeros(B, 3, 3, dtype=torch.float64, device=device)
+    z = torch.zeros(B, N, dtype=torch.bool, device=device)
+    return TwoViewResult(model, z, z.sum(-1), z.any(-1))
 
 
-def _pick(models: torch.Tensor, err: torch.Tensor, thr_sq: float, mask: torch.Tensor,
-          groups: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per group of candidates (B, groups*M) choose most inliers (then lowest truncated error).
-
-    Returns chosen models (B,groups,3,3) and their inliers (B,groups,N).
-    """
-    B, GM, N = err.shape
-    count, trunc = _best_candidates(err, thr_sq, mask)
-    key = count.to(torch.float64) * 1e6 - trunc / max(thr_sq, 1e-30) / (N + 1) * 1e-3
-    key = key.view(B, groups, GM // groups)
-    best = key.argmax(-1)  # (B,groups)
-    flat = best + torch.arange(groups, device=err.device)[None] * (GM // groups)
-    chosen = models.gather(1, flat[..., None, None].expand(B, groups, 3, 3))
-    e = err.gather(1, flat[..., None].expand(B, groups, N))
-    return chosen, mask[:, None] & torch.isfinite(e) & (e < thr_sq)
-
-
-def _finalise(models: torch.Tensor, inl: torch.Tensor, min_inliers: int) -> TwoViewResult:
-    """Across repeats (B,R,...) keep the one with most inliers."""
-    counts = inl.sum(-1)
-    best = counts.argmax(-1)
-    B = models.shape[0]
-    ar = torch.arange(B, device=models.device)
-    model, inliers = models[ar, best], inl[ar, best]
-    num = inliers.sum(-1)
-    return TwoViewResult(model, inliers, num, num >= min_inliers)
+def _gather_rows(x: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+    """x (B,N,2), rows (B,...) long or None -> (B,...,2)."""
+    if rows is None:
+        return x
+    return x.gather(1, rows.reshape(rows.shape[0], -1, 1).expand(-1, -1, 2)).view(*rows.shape, 2)
 
 
 def find_essential_ransac(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
                           threshold_px: float = 0.2, iterations: int = 20, repeats: int = 5,
                           generators: list[torch.Generator] | None = None, refine: bool = True,
-                          preview: int = 256, max_real: int = 6) -> TwoViewResult:
-    """Essential matrix by batched five-point RANSAC (kornia ``find_essential``), repeated ``repeats`` times.
+                          preview: int = 256, max_real: int = 6, refine_iterations: int = 5,
+                          refine_starts: int = 2) -> TwoViewResult:
+    """Essential matrix by batched five-point RANSAC (kornia ``find_essential``) with a local optimisation.
 
-    Each repeat draws ``iterations`` minimal samples (equivalent to running on freshly shuffled rows), keeps
-    its best candidate (most inliers, ties by truncated error) and, when ``refine``, refits on its inliers with
-    the least-squares five-point solver (local optimisation); the repeat with most inliers wins.
-    The pixel threshold is converted to normalised coordinates by the mean focal length: a row is an inlier
-    when its normalised Sampson distance is below ``threshold_px / f``.
+    Runs :func:`dfvo.geometry.ransac.hypothesise_and_verify`: ``repeats`` repeats of ``iterations`` minimal
+    samples, candidates ranked on ``preview`` random rows, each repeat's winner scored on all rows. With
+    ``refine`` (local optimisation, LO-RANSAC style) the ``refine_starts`` best repeat winners are each refined
+    by :func:`dfvo.geometry.essential_refine.refine_essential` (robust Levenberg-Marquardt of the Sampson error
+    of all valid rows over (R, t) on the essential manifold; Cauchy kernel of scale = the threshold, or less
+    when the start's residuals are cleaner, cut off at 3 scales, so the inliers are re-weighted at every step)
+    and the best refined model wins; without it the best repeat winner wins (best:
+    most inliers, then lowest truncated error). A row is an inlier when its normalised Sampson distance is
+    below ``threshold_px / f`` (f the mean focal length, the largest of the batch: frames of one sequence
+    share K).
 
     Args:
-        pts_i, pts_j: (B,N,2) pixels in images i and j.
+        pts_i, pts_j: (B,N,2) pixels in images i (previous) and j (current).
         mask: (B,N) bool valid rows.
         K: (B,3,3) intrinsics.
         threshold_px: inlier threshold in pixels (official 0.2).
         iterations: minimal samples per repeat.
-        repeats: independent repeats, most inliers wins (official 5).
+        repeats: independent repeats (official 5).
         generators: one ``torch.Generator`` per frame for reproducible sampling (None: global RNG).
-        refine: least-squares refit of each repeat's winner on its inliers.
-        preview: rows (random, per frame) on which all candidates are ranked (float32) before the full
-            float64 scoring of each repeat's winner.
+        refine: locally optimise the best repeat winners.
+        preview: rows (random, per frame, with replacement) on which all candidates are ranked (float32).
         max_real: real five-point candidates kept per sample (of kornia's ten slots).
+        refine_iterations: maximum Levenberg-Marquardt steps of the local optimisation.
+        refine_starts: how many repeat winners (best first) are refined; more is more robust on hard frames
+            (small baselines, many outliers) and costs more.
+
+    Convention:
+        ``x_j^T E x_i = 0`` on normalised coordinates; ``decompose_essential(E, ...)`` gives ``T_cur_prev``.
 
     Returns:
         :class:`TwoViewResult` with ``model`` = E (B,3,3) float64; ``success`` False with fewer than 5 rows.
@@ -191,126 +180,115 @@ def find_essential_ransac(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.
                  f"find_essential_ransac: need threshold_px, iterations, repeats > 0; got {threshold_px}, "
                  f"{iterations}, {repeats}")
     B, N = mask.shape
-    Kd = K.to(torch.float64)
-    xi, xj = normalise_points(pts_i.to(torch.float64), Kd), normalise_points(pts_j.to(torch.float64), Kd)
-    f = 0.5 * (Kd[:, 0, 0] + Kd[:, 1, 1])
-    # a single threshold per batch keeps the code simple; frames of one sequence share K
-    thr = float((threshold_px / f).max())
-    thr_sq = thr * thr
     enough = mask.sum(-1) >= 5
-    m = mask & enough[:, None]
     if N < 5 or not bool(enough.any()):
-        eye = torch.zeros(B, 3, 3, dtype=torch.float64, device=pts_i.device)
-        z = torch.zeros_like(mask)
-        return TwoViewResult(eye, z, z.sum(-1), torch.zeros_like(enough))
-    S = iterations * repeats
-    idx = _sample_rows(torch.where(enough[:, None], mask, torch.ones_like(mask)), S, 5, generators)  # (B,S,5)
-    si = xi.gather(1, idx.view(B, S * 5, 1).expand(-1, -1, 2)).view(B * S, 5, 2)
-    sj = xj.gather(1, idx.view(B, S * 5, 1).expand(-1, -1, 2)).view(B * S, 5, 2)
-    cand = find_essential(si, sj).view(B, S, 10, 3, 3)
-    # complex roots come back as NaN slots: keep the first ``max_real`` real candidates of each sample
-    # (five-point samples rarely have more than six real solutions), which cuts the scoring work
-    finite = torch.isfinite(cand).all(-1).all(-1)
-    order = torch.sort((~finite).to(torch.uint8), dim=-1, stable=True).indices[..., :max_real]
-    cand = cand.gather(2, order[..., None, None].expand(-1, -1, -1, 3, 3)).view(B, S * max_real, 3, 3)
-    # preemptive scoring: rank the candidates on a random subset of rows, then score each repeat's winner
-    # on all rows (keeps the cost linear in candidates + rows instead of their product)
-    sub = _sample_rows(torch.where(enough[:, None], mask, torch.ones_like(mask)), 1, min(N, preview),
-                       generators)[:, 0]
-    sub_m = m.gather(1, sub)
-    sub2 = sub[..., None].expand(-1, -1, 2)
-    err_sub = sampson_sq(cand.float(), xi.gather(1, sub2).float(), xj.gather(1, sub2).float()).double()
-    models, _ = _pick(cand, err_sub, thr_sq, sub_m, repeats)  # (B,R,3,3)
-    models, inl = _pick(models, sampson_sq(models, xi, xj), thr_sq, m, repeats)  # (B,R,N)
-    if refine:
-        w = inl.to(torch.float64).view(B * repeats, N)
-        ok = w.sum(-1) >= 6
-        if bool(ok.any()):
-            ref = find_essential(xi.repeat_interleave(repeats, 0), xj.repeat_interleave(repeats, 0),
-                                 w).view(B, repeats * 10, 3, 3)
-            allc = torch.cat([models[:, :, None], ref.view(B, repeats, 10, 3, 3)], 2).view(B, repeats * 11, 3, 3)
-            err = sampson_sq(allc, xi, xj)
-            models, inl = _pick(allc, err, thr_sq, m, repeats)
-    res = _finalise(models, inl, 5)
-    res.success &= enough
-    return res
+        return _fail(B, N, False, pts_i.device)
+    Kd = K.to(torch.float64)
+    m = mask & enough[:, None]
+    xi = torch.where(m[..., None], normalise_points(pts_i.to(torch.float64), Kd), 0.0)
+    xj = torch.where(m[..., None], normalise_points(pts_j.to(torch.float64), Kd), 0.0)
+    thr = float((threshold_px / (0.5 * (Kd[:, 0, 0] + Kd[:, 1, 1]))).max())
+    thr_sq = thr * thr
+
+    def solve(rows: torch.Tensor) -> torch.Tensor:
+        S = rows.shape[1]
+        cand = find_essential(_gather_rows(xi, rows).view(B * S, 5, 2),
+                              _gather_rows(xj, rows).view(B * S, 5, 2)).view(B, S, 10, 3, 3)
+        # complex roots come back as NaN slots: keep the first ``max_real`` real ones (five-point samples
+        # rarely have more than six real solutions), which cuts the scoring work
+        finite = torch.isfinite(cand).all(-1).all(-1)
+        order = torch.sort((~finite).to(torch.uint8), dim=-1, stable=True).indices[..., :max_real]
+        return cand.gather(2, order[..., None, None].expand(-1, -1, -1, 3, 3))
+
+    def residual(models: torch.Tensor, rows: torch.Tensor | None, exact: bool) -> torch.Tensor:
+        a, b = _gather_rows(xi, rows), _gather_rows(xj, rows)
+        return sampson_sq(models, a, b) if exact else sampson_sq(models.float(), a.float(), b.float())
+
+    win = hypothesise_and_verify(m, 5, solve, residual, thr_sq, iterations, repeats, generators, preview)
+    models, err = win.models, win.err_sq
+    if refine:  # local optimisation of the best ``refine_starts`` repeat winners; the best refined one wins
+        k = min(max(int(refine_starts), 1), repeats)
+        count, trunc = score_models(err, thr_sq, m)
+        order = rank_models(count, trunc, thr_sq, N)[:, :k]
+        start = models.gather(1, order[..., None, None].expand(-1, -1, 3, 3)).reshape(B * k, 3, 3)
+        mk = m.repeat_interleave(k, 0)
+        # kernel scale: the threshold, or less where the start's Sampson distances say the data are cleaner
+        # (twice their median-based scale, 1.4826 median |r|), so that exact inliers refine to an exact model
+        r0 = err.gather(1, order[..., None].expand(-1, -1, N)).reshape(B * k, N).sqrt()
+        med = torch.where(mk, r0, float("nan")).nanmedian(-1).values
+        sigma = (2.0 * 1.4826 * torch.nan_to_num(med, nan=thr)).clamp(thr * 1e-3, thr)
+        models, _ = refine_essential(start, xi.repeat_interleave(k, 0), xj.repeat_interleave(k, 0), mk, sigma=sigma,
+                                     iterations=refine_iterations)
+        models = models.view(B, k, 3, 3)
+        err = sampson_sq(models, xi, xj)
+    model, inliers, _ = pick_best(models, err, thr_sq, m)
+    num = inliers.sum(-1)
+    return TwoViewResult(model, inliers, num, (num >= 5) & enough)
 
 
 def find_homography_ransac(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, threshold_px: float = 1.0,
                            iterations: int = 50, repeats: int = 1,
                            generators: list[torch.Generator] | None = None, preview: int = 256) -> TwoViewResult:
     """Homography ``x_j ~ H x_i`` by batched four-point DLT RANSAC (kornia ``find_homography_dlt``) with a
-    weighted DLT refit on the winner's inliers. Inliers: Torr's geometric error (:func:`homography_error_sq`)
-    below ``threshold_px`` pixels.
+    weighted DLT refit on each repeat's winner's inliers.
+
+    Runs :func:`dfvo.geometry.ransac.hypothesise_and_verify`; inliers are rows whose Torr geometric error
+    (:func:`homography_error_sq`) is below ``threshold_px`` pixels. The result is the best of the winners and
+    their refits (most inliers, then lowest truncated error).
 
     Args:
         pts_i, pts_j: (B,N,2) pixels. mask: (B,N) bool. threshold_px: pixels (official 1).
-        iterations, repeats: samples per repeat and repeats (most inliers wins).
+        iterations, repeats: samples per repeat and repeats.
         generators: one generator per frame (None: global RNG).
-        preview: rows (random, per frame) on which all candidates are ranked before the full scoring.
+        preview: rows (random, per frame, with replacement) on which all candidates are ranked.
+
+    Convention:
+        ``H`` maps pixels of image i (previous) to pixels of image j (current), ``H[2, 2] = 1`` where finite.
 
     Returns:
-        :class:`TwoViewResult` with ``model`` = H (B,3,3) float64.
+        :class:`TwoViewResult` with ``model`` = H (B,3,3) float64; ``success`` False with fewer than 4 rows.
     """
     _check(pts_i, pts_j, mask, None, "find_homography_ransac")
+    KORNIA_CHECK(threshold_px > 0, f"find_homography_ransac: threshold_px must be > 0, got {threshold_px}")
     B, N = mask.shape
-    xi, xj = pts_i.to(torch.float64), pts_j.to(torch.float64)
-    thr_sq = float(threshold_px) ** 2
     enough = mask.sum(-1) >= 4
     if N < 4 or not bool(enough.any()):
-        z = torch.zeros_like(mask)
-        return TwoViewResult(torch.eye(3, dtype=torch.float64).repeat(B, 1, 1), z, z.sum(-1), torch.zeros_like(enough))
-    S = iterations * repeats
-    idx = _sample_rows(torch.where(enough[:, None], mask, torch.ones_like(mask)), S, 4, generators)
-    si = xi.gather(1, idx.view(B, S * 4, 1).expand(-1, -1, 2)).view(B * S, 4, 2)
-    sj = xj.gather(1, idx.view(B, S * 4, 1).expand(-1, -1, 2)).view(B * S, 4, 2)
-    cand = find_homography_dlt(si, sj).view(B, S, 3, 3)
+        return _fail(B, N, True, pts_i.device)
     m = mask & enough[:, None]
-    sub = _sample_rows(torch.where(enough[:, None], mask, torch.ones_like(mask)), 1, min(N, preview),
-                       generators)[:, 0]
-    sub2 = sub[..., None].expand(-1, -1, 2)
-    err_sub = homography_error_sq(cand, xi.gather(1, sub2), xj.gather(1, sub2))
-    models, _ = _pick(cand, err_sub, thr_sq, m.gather(1, sub), repeats)
-    models, inl = _pick(models, homography_error_sq(models, xi, xj), thr_sq, m, repeats)
-    w = inl.to(torch.float64).view(B * repeats, N)
+    xi = torch.where(m[..., None], pts_i.to(torch.float64), 0.0)
+    xj = torch.where(m[..., None], pts_j.to(torch.float64), 0.0)
+    thr_sq = float(threshold_px) ** 2
+
+    def solve(rows: torch.Tensor) -> torch.Tensor:
+        S = rows.shape[1]
+        return find_homography_dlt(_gather_rows(xi, rows).view(B * S, 4, 2),
+                                   _gather_rows(xj, rows).view(B * S, 4, 2)).view(B, S, 1, 3, 3)
+
+    def residual(models: torch.Tensor, rows: torch.Tensor | None, exact: bool) -> torch.Tensor:
+        return homography_error_sq(models, _gather_rows(xi, rows), _gather_rows(xj, rows))
+
+    win = hypothesise_and_verify(m, 4, solve, residual, thr_sq, iterations, repeats, generators, preview)
+    w = win.inliers.to(torch.float64).view(B * repeats, N)
     ref = find_homography_dlt(xi.repeat_interleave(repeats, 0), xj.repeat_interleave(repeats, 0), w)
-    ref = torch.where((w.sum(-1) >= 4)[:, None, None] & torch.isfinite(ref).all(-1).all(-1)[:, None, None],
-                      ref, models.view(B * repeats, 3, 3)).view(B, repeats, 1, 3, 3)
-    allc = torch.cat([models[:, :, None], ref], 2).view(B, repeats * 2, 3, 3)
-    models, inl = _pick(allc, homography_error_sq(allc, xi, xj), thr_sq, m, repeats)
-    res = _finalise(models, inl, 4)
-    res.success &= enough
-    return res
-
-
-def triangulate(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor,
-                pts_j: torch.Tensor) -> torch.Tensor:
-    """Triangulate (B,N,2) pixel pairs with camera i at the origin and camera j at ``T_j_i = [R | t]``.
-
-    Returns:
-        (B,N,3) points in frame i (float64); their z is the depth in camera i.
-    """
-    Kd = K.to(torch.float64)
-    B = R.shape[0]
-    P1 = Kd @ torch.cat([torch.eye(3, dtype=torch.float64, device=R.device).expand(B, 3, 3),
-                         torch.zeros(B, 3, 1, dtype=torch.float64, device=R.device)], -1)
-    P2 = Kd @ torch.cat([R.to(torch.float64), t.to(torch.float64).reshape(B, 3, 1)], -1)
-    return triangulate_points(P1, P2, pts_i.to(torch.float64), pts_j.to(torch.float64))
-
+    ok = (w.sum(-1) >= 4) & torch.isfinite(ref).all(-1).all(-1)
+    ref = torch.where(ok[:, None, None], ref, win.models.view(B * repeats, 3, 3)).view(B, repeats, 3, 3)
+    models = torch.cat([win.models, ref], 1)
+    model, inliers, _ = pick_best(models, torch.cat([win.err_sq, homography_error_sq(ref, xi, xj)], 1), thr_sq, m)
+    num = inliers.sum(-1)
+    return TwoViewResult(model, inliers, num, (num >= 4) & enough)
 
 def ray_depths(R: torch.Tensor, t: torch.Tensor, x_i: torch.Tensor,
                x_j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Closed-form two-view depths of normalised rays under ``T_j_i = [R | t]``.
+    """Closed-form two-view depths of normalised rays under ``T_cur_prev = [R | t]``.
 
     Solves ``z_j x_j = z_i R x_i + t`` in the least-squares sense of the cross product with ``x_j``:
     ``z_i = -((x_j x t) . (x_j x R x_i)) / |x_j x R x_i|^2``; exact on exact data, and much cheaper than a
     per-point SVD.
 
-    Args:
-        R: (B,M,3,3), t: (B,M,3) candidate motions. x_i, x_j: (B,N,2) normalised coordinates.
-
-    Returns:
-        z_i, z_j: (B,M,N) depths in cameras i and j.
+    Convention:
+        R (B,M,3,3), t (B,M,3): candidate motions ``T_cur_prev`` (frame-i points into camera j). x_i, x_j
+        (B,N,2): normalised coordinates in images i (previous) and j (current). Returns z_i, z_j (B,M,N):
+        depths in cameras i and j, in the unit of ``t``.
     """
     hi = torch.cat([x_i, torch.ones_like(x_i[..., :1])], -1)
     hj = torch.cat([x_j, torch.ones_like(x_j[..., :1])], -1)
@@ -324,12 +302,15 @@ def ray_depths(R: torch.Tensor, t: torch.Tensor, x_i: torch.Tensor,
 
 def decompose_essential(E: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor,
                         mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Decompose E into ``T_j_i = [R | t]`` (unit t): of the four solutions of kornia's
+    """Decompose E into ``T_cur_prev = [R | t]`` (unit t): of the four solutions of kornia's
     ``decompose_essential_matrix``, keep the one with most valid rows in front of both cameras (cheirality,
     as kornia's ``motion_from_essential_choose_solution`` does, with closed-form depths :func:`ray_depths`).
 
-    Returns:
-        R (B,3,3), t (B,3) float64, and ``in_front`` (B,N) bool: valid rows passing cheirality.
+    Convention:
+        E (B,3,3) with ``x_j^T E x_i = 0`` on normalised coordinates; K (B,3,3); pts_i, pts_j (B,N,2) pixels in
+        images i (previous) and j (current); mask (B,N) bool. Returns R (B,3,3), t (B,3) float64 of
+        ``T_cur_prev`` (frame-i points into camera j), and ``in_front`` (B,N) bool: valid rows passing
+        cheirality. A non-finite E gives a pose with no row in front.
     """
     _check(pts_i, pts_j, mask, K, "decompose_essential")
     Kd = K.to(torch.float64)

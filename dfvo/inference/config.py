@@ -22,18 +22,12 @@ from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
 from dfvo.tracking.config import TrackerConfig
 from dfvo.training.online_flow import OnlineFlowConfig
 
-__all__ = ["AlignMode", "PoseFormat", "ImgResConfig", "DataConfig", "SyntheticDataConfig", "KittiOdomDataConfig",
+__all__ = ["ALIGN_MODES", "PoseFormat", "ImgResConfig", "DataConfig", "SyntheticDataConfig", "KittiOdomDataConfig",
            "KittiRawDataConfig", "FolderDataConfig", "EurocDataConfig", "TumDataConfig", "VideoDataConfig",
            "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig", "InferConfig", "register_configs", "typed"]
 
 
-class AlignMode(StrEnum):
-    """Alignment of the prediction to the ground truth before metrics: ``6dof`` (metric depth), ``7dof``
-    (monocular, up to scale), ``scale`` (scale only)."""
-
-    six_dof = "6dof"
-    seven_dof = "7dof"
-    scale = "scale"
+ALIGN_MODES = ("6dof", "7dof", "scale")  # 6dof: metric depth; 7dof: monocular, up to scale; scale: scale only
 
 
 class PoseFormat(StrEnum):
@@ -73,7 +67,10 @@ class DataConfig:
 
 @dataclass
 class SyntheticDataConfig(DataConfig):
-    """The built-in synthetic world (:class:`dfvo.data.synthetic.SyntheticWorld`); ``seq`` is the scenario."""
+    """The built-in synthetic world (:class:`dfvo.data.synthetic.SyntheticWorld`); ``seq`` is the scenario (drive,
+    city, straight, highway, still, rotation, planar, moving_car); ``speed`` (metres per frame, a value or a
+    ``[low, high]`` range drawn per world; null: the scenario's default) and ``turn_rate`` (degrees per frame, the
+    same) reshape the street scenarios. Seeds >= 1000 are never used for training (held-out worlds)."""
 
     kind: str = "synthetic"
     seq: str | None = "drive"
@@ -81,6 +78,8 @@ class SyntheticDataConfig(DataConfig):
     num_frames: int = 30
     exposure_change: bool = False
     noise_std: float = 0.0
+    speed: Any = None
+    turn_rate: Any = None
 
 
 @dataclass
@@ -103,21 +102,45 @@ class KittiRawDataConfig(DataConfig):
 
 
 @dataclass
-class FolderDataConfig(DataConfig):
-    """Your own frames: a folder of PNG/JPEG images, pinhole intrinsics in pixels of the stored images, optional
-    OpenCV radial-tangential distortion ``[k1, k2, p1, p2(, k3)]``."""
+class CameraDataConfig(DataConfig):
+    """Pinhole intrinsics ``fx, fy, cx, cy`` in pixels of the stored frames and optional OpenCV radial-tangential
+    distortion ``dist`` = ``[k1, k2, p1, p2(, k3)]`` (or 8 rational coefficients), for data that does not carry its
+    own calibration."""
 
-    kind: str = "folder"
-    root: str | None = None
     fx: float | None = None
     fy: float | None = None
     cx: float | None = None
     cy: float | None = None
     dist: list[float] | None = None
+
+
+@dataclass
+class OwnVideoDataConfig(CameraDataConfig):
+    """Own frames or video, with optional ground truth ``gt`` (a trajectory file in ``gt_format``: auto, kitti, tum,
+    euroc), associated with the frames by index, by 13-number frame index, or by nearest timestamp within
+    ``gt_tolerance`` seconds (frame times from ``times``: a file, one line per frame, or the video container)."""
+
     gt: str | None = None
     gt_format: str = "auto"
     times: str | None = None
     gt_tolerance: float = 0.02
+
+
+@dataclass
+class FolderDataConfig(OwnVideoDataConfig):
+    """Your own frames: ``root`` a folder of PNG/JPEG images (natural filename order)."""
+
+    kind: str = "folder"
+    root: str | None = None
+
+
+@dataclass
+class VideoDataConfig(OwnVideoDataConfig):
+    """A video file ``path`` (decoded as a stream with PyAV: ``pip install "dfvo[video]"``); timestamps from the
+    container."""
+
+    kind: str = "video"
+    path: str | None = None
 
 
 @dataclass
@@ -136,39 +159,16 @@ class EurocDataConfig(DataConfig):
 
 
 @dataclass
-class TumDataConfig(DataConfig):
+class TumDataConfig(CameraDataConfig):
     """TUM RGB-D: ``root`` the sequence folder (``rgb.txt``, ``groundtruth.txt``); intrinsics given, or the published
     freiburg1/2/3 ones chosen from the folder name (``camera=auto``) or ``camera=fr1|fr2|fr3``."""
 
     kind: str = "tum"
     root: str | None = None
-    fx: float | None = None
-    fy: float | None = None
-    cx: float | None = None
-    cy: float | None = None
-    dist: list[float] | None = None
     camera: str = "auto"
     undistort: bool = True
     gt_tolerance: float = 0.02
     unmatched: str = "trim"
-
-
-@dataclass
-class VideoDataConfig(DataConfig):
-    """A video file (``path``, decoded as a stream with PyAV: ``pip install "dfvo[video]"``), intrinsics in pixels of
-    the stored frames, optional distortion; timestamps from the container; ground truth as for ``folder``."""
-
-    kind: str = "video"
-    path: str | None = None
-    fx: float | None = None
-    fy: float | None = None
-    cx: float | None = None
-    cy: float | None = None
-    dist: list[float] | None = None
-    gt: str | None = None
-    gt_format: str = "auto"
-    times: str | None = None
-    gt_tolerance: float = 0.02
 
 
 DATA_SCHEMAS: dict[str, type[DataConfig]] = {
@@ -225,7 +225,7 @@ class InferConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     seq: str | None = None
     out_dir: str | None = None
-    align: AlignMode = AlignMode.six_dof
+    align: str = "6dof"
     pose_format: PoseFormat = PoseFormat.kitti
     batch_size: int = 4
     device: str = "cpu"
@@ -237,6 +237,13 @@ class InferConfig:
     online: OnlineFlowConfig = field(default_factory=OnlineFlowConfig)
     tensorboard: TensorboardConfig = field(default_factory=TensorboardConfig)
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
+
+    def __post_init__(self) -> None:
+        if self.align not in ALIGN_MODES:
+            raise ValueError(f"align={self.align!r}; expected one of {ALIGN_MODES} (6dof for metric depth, 7dof for "
+                             "monocular depth)")
+        if int(self.batch_size) < 1:
+            raise ValueError(f"batch_size={self.batch_size}; expected a positive number of frame pairs")
 
 
 def register_configs() -> None:

@@ -1,6 +1,7 @@
-"""The frames an inference run reads: one sequence of any supported dataset behind one small interface.
+"""The frames an inference run reads: the ``data`` config opened as a :class:`~dfvo.data.sequence.FrameSequence`
+at the working size.
 
-Convention:
+Convention (of the sequence):
     ``FrameSequence.image(i)`` is (3,H,W) float in [0,1] at the working resolution, ``K`` (3,3) in its pixels,
     ``poses`` (N,4,4) float64 ``T_w_c`` of the left camera when ground truth exists (else None), ``world`` the
     :class:`~dfvo.data.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it), ``timestamps``
@@ -13,13 +14,14 @@ from __future__ import annotations
 import logging
 import os
 import re
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from dfvo.data.sequence import FrameSequence
 
 __all__ = ["FrameSequence", "build_sequence", "resolve_data", "working_hw", "at_working_size", "DATA_ROOT_ENV"]
 
@@ -29,24 +31,6 @@ log = logging.getLogger("dfvo.data")
 DATA_ROOT_ENV = {"kitti_odom": "DFVO_KITTI_ODOM_ROOT", "kitti_raw": "DFVO_KITTI_RAW_ROOT"}
 KITTI_ODOM_SEQ = re.compile(r"^\d{1,2}$")
 SYNTHETIC_FRAME_PERIOD_S = 0.1  # the synthetic camera runs at KITTI's 10 Hz
-
-
-@dataclass
-class FrameSequence:
-    """One sequence ready for inference (see module docstring)."""
-
-    name: str
-    length: int
-    K: torch.Tensor
-    load: Callable[[int], torch.Tensor]
-    poses: np.ndarray | None = None
-    world: Any = None
-    timestamps: np.ndarray | None = None
-    frame_ids: np.ndarray | None = field(default=None, repr=False)
-
-    def image(self, index: int) -> torch.Tensor:
-        """(3,H,W) frame ``index``."""
-        return self.load(index)
 
 
 def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
@@ -218,7 +202,9 @@ def _synthetic(data: Any, scenario: str | None, hw: tuple[int, int]) -> FrameSeq
     from dfvo.data.synthetic import SyntheticWorld
     scenario = scenario or "drive"
     world = SyntheticWorld(seed=data.seed, num_frames=data.num_frames, height=hw[0], width=hw[1],
-                           exposure_change=data.exposure_change, noise_std=data.noise_std, scenario=scenario)
+                           exposure_change=data.exposure_change, noise_std=data.noise_std, scenario=scenario,
+                           speed=_range_or_value(data.speed, "data.speed"),
+                           turn_rate=_range_or_value(data.turn_rate, "data.turn_rate"))
     ids = list(range(len(world)))[slice(data.start, data.end, data.step)]
     if len(ids) < 2:
         raise ValueError(f"data=synthetic: frames {data.start}..{data.end} select {len(ids)} frames; expected at "
@@ -230,6 +216,16 @@ def _synthetic(data: Any, scenario: str | None, hw: tuple[int, int]) -> FrameSeq
     times = np.asarray(ids, dtype=np.float64) * SYNTHETIC_FRAME_PERIOD_S
     return FrameSequence(name, len(ids), world.intrinsics().float(), lambda i: world.image(ids[i]), poses,
                          _OffsetWorld(world, ids[0]), timestamps=times)
+
+
+def _range_or_value(value: Any, setting: str) -> float | tuple[float, float] | None:
+    """A setting given as a number or a ``[low, high]`` range, as SyntheticWorld takes it."""
+    if value is None or isinstance(value, int | float):
+        return value
+    values = [float(v) for v in value]
+    if len(values) != 2:
+        raise ValueError(f"{setting}={list(value)}; expected a number or a [low, high] range")
+    return values[0], values[1]
 
 
 class _OffsetWorld:

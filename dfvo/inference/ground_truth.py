@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from dfvo.inference.frames import FrameSequence
+from dfvo.data.sequence import FrameSequence
 
 __all__ = ["attach_ground_truth"]
 

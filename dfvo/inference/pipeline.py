@@ -180,7 +180,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     if stopped is not None:
         log.warning("interrupted by %s: %s holds the first %d of %d poses; writing partial results",
                     signal.Signals(stopped.signum).name, pose_file, len(trajectory), seq.length)
-    summary = finish_run(seq, np.stack(trajectory), diagnostics, timer, wall, out, align=cfg.align.value,
+    summary = finish_run(seq, np.stack(trajectory), diagnostics, timer, wall, out, align=cfg.align,
                          pose_file=pose_file, warn_fallback_rate=cfg.warn_fallback_rate,
                          partial=None if stopped is None else signal.Signals(stopped.signum).name, extra=extra)
     if stopped is not None:

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from dfvo.inference.frames import FrameSequence
+from dfvo.data.sequence import FrameSequence
 from dfvo.inference.outputs import fallback_summary
 from dfvo.inference.timing import StageTimer
 from dfvo.io.json_io import write_json

@@ -21,17 +21,12 @@ def track_pnp(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, dept
     Each frame runs with its own generator (batched == unbatched).
 
     Returns:
-        T_j_i (B,4,4) float64 (identity where it failed), success (B,) bool, num_inliers (B,) long.
+        T_cur_prev (B,4,4) float64 (identity where it failed), success (B,) bool, num_inliers (B,) long.
     """
     z, ok = sample_depth(depth_i, pts_i, cfg.scale.max_depth, cfg.scale.depth_crop_top)
     rows = mask & ok
     X = backproject_points(pts_i.to(torch.float64), torch.where(rows, z, 1.0), K.to(torch.float64))
-    Ts, succ, nin = [], [], []
-    for b in range(pts_i.shape[0]):
-        r = solve_pnp_ransac(X[b:b + 1], pts_j[b:b + 1].to(torch.float64), rows[b:b + 1], K[b:b + 1].to(torch.float64),
-                             threshold_px=cfg.pnp.threshold_px, iterations=cfg.pnp.iterations,
-                             repeats=cfg.pnp.repeats, min_points=cfg.pnp.min_points, generator=generators[b])
-        Ts.append(r.T_j_i.to(torch.float64))
-        succ.append(r.success)
-        nin.append(r.num_inliers)
-    return torch.cat(Ts), torch.cat(succ), torch.cat(nin)
+    r = solve_pnp_ransac(X, pts_j.to(torch.float64), rows, K.to(torch.float64), threshold_px=cfg.pnp.threshold_px,
+                         iterations=cfg.pnp.iterations, repeats=cfg.pnp.repeats, min_points=cfg.pnp.min_points,
+                         generators=generators)
+    return r.T_cur_prev.to(torch.float64), r.success, r.num_inliers

@@ -14,7 +14,8 @@ from collections.abc import Callable
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.geometry.two_view import frame_rand, normalise_points, ray_depths
+from dfvo.geometry.ransac import frame_rand
+from dfvo.geometry.two_view import normalise_points, ray_depths
 
 __all__ = ["sample_depth", "triangulated_depth", "triangulated_depths", "simple_scale", "iterative_scale"]
 
@@ -38,7 +39,7 @@ def sample_depth(depth: torch.Tensor, pts: torch.Tensor, max_depth: float = 50.0
 def triangulated_depths(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor,
                         pts_j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Depths in camera i and in camera j (B,N each, float64) of pixel pairs triangulated with
-    ``T_j_i = [R | t]`` (unit t; both depths scale with the length of t), and (B,N) bool "in front of both
+    ``T_cur_prev = [R | t]`` (unit t; both depths scale with the length of t), and (B,N) bool "in front of both
     cameras"."""
     Kd = K.to(torch.float64)
     xi, xj = normalise_points(pts_i.to(torch.float64), Kd), normalise_points(pts_j.to(torch.float64), Kd)
@@ -48,7 +49,7 @@ def triangulated_depths(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_i
 
 def triangulated_depth(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor,
                        pts_j: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Depth in camera i (B,N) of pixel pairs triangulated with ``T_j_i = [R | t]`` (unit t), and (B,N) bool
+    """Depth in camera i (B,N) of pixel pairs triangulated with ``T_cur_prev = [R | t]`` (unit t), and (B,N) bool
     "in front of both cameras"."""
     z_i, _, front = triangulated_depths(R, t, K, pts_i, pts_j)
     return z_i, front
@@ -110,7 +111,7 @@ def iterative_scale(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
 
     Args:
         pts_i, pts_j: (1,N,2) pixels. mask: (1,N) selected rows. z_cnn, z_valid: (1,N) CNN depth at pts_i.
-        K: (1,3,3). R, t: (1,3,3), (1,3) initial ``T_j_i`` with unit t. init_scale: previous frame's scale.
+        K: (1,3,3). R, t: (1,3,3), (1,3) initial ``T_cur_prev`` with unit t. init_scale: previous frame's scale.
         estimate: ``estimate(rows (1,N) bool) -> (R, t, scale (1,), success (1,))``.
 
     Returns:

@@ -70,7 +70,7 @@ def test_determinism_by_seed() -> None:
 
 
 @pytest.mark.parametrize("scenario,index", [("drive", 10), ("drive", 40), ("rotation", 3), ("planar", 2),
-                                            ("moving_car", 6), ("straight", 4)])
+                                            ("moving_car", 6), ("straight", 4), ("city", 5), ("highway", 4)])
 def test_static_flow_equals_rigid_flow(scenario: str, index: int, drive: SyntheticWorld) -> None:
     world = drive if scenario == "drive" else SyntheticWorld(seed=5, num_frames=12, height=H, width=W,
                                                              scenario=scenario)
@@ -114,7 +114,7 @@ def test_moving_car_flow_follows_object_motion() -> None:
     assert (rf - s["flow_fwd"]).norm(dim=0)[dyn].median() > 0.5
 
 
-@pytest.mark.parametrize("scenario,index", [("drive", 12), ("moving_car", 4)])
+@pytest.mark.parametrize("scenario,index", [("drive", 12), ("moving_car", 4), ("highway", 3)])
 def test_forward_backward_consistency(scenario: str, index: int, drive: SyntheticWorld) -> None:
     world = drive if scenario == "drive" else SyntheticWorld(seed=4, num_frames=8, height=H, width=W,
                                                              scenario=scenario)
@@ -126,7 +126,7 @@ def test_forward_backward_consistency(scenario: str, index: int, drive: Syntheti
     # valid pixels whose bilinear footprint in image j is also visible (not straddling an occlusion edge)
     vis_b = sample(s["flow_bwd_valid"].float(), target)[0] > 0.999
     m = s["flow_fwd_valid"][0] & vis_b
-    assert m.float().mean() > 0.4
+    assert m.float().mean() > 0.3  # the highway's sky is a third of the image
     assert diff[m].median() < 0.02
     assert (diff[m] < 0.5).float().mean() > 0.97
 
@@ -280,7 +280,7 @@ def test_datasets_and_collate() -> None:
 
 def test_bad_arguments_name_the_setting() -> None:
     with pytest.raises(ValueError, match="scenario"):
-        SyntheticWorld(scenario="highway")
+        SyntheticWorld(scenario="motorway")
     with pytest.raises(ValueError, match="num_frames"):
         SyntheticWorld(num_frames=1)
     with pytest.raises(ValueError, match="baseline"):

@@ -1,4 +1,5 @@
-"""Two-view geometry: exact essential/homography recovery, cheirality, triangulation, OpenCV comparison."""
+"""Two-view geometry: exact essential/homography recovery, cheirality, two-view depths, batching and padding,
+OpenCV comparison."""
 
 import math
 
@@ -28,7 +29,7 @@ def make_pairs(B: int, N: int, seed: int = 0, planar: bool = False):
                      (torch.rand(B, N, generator=g).double() - 0.5) * 0.25 * z, z], -1)
     aa = (torch.rand(B, 3, generator=g).double() - 0.5) * 0.1
     t = torch.cat([(torch.rand(B, 2, generator=g).double() - 0.5) * 0.4, -torch.ones(B, 1).double()], -1)
-    T = pose_from_axis_angle(aa, t)  # T_j_i
+    T = pose_from_axis_angle(aa, t)  # T_cur_prev
     pi, _ = project_points(X, K)
     pj, _ = project_points(transform_points(T, X), K)
     return pi, pj, K, T, X
@@ -79,6 +80,26 @@ def test_batched_equals_unbatched_and_seed_stable():
                                     generators=[torch.Generator().manual_seed(7 + b)])
         assert torch.equal(one.inliers[0], full.inliers[b])
         assert torch.allclose(one.model[0], full.model[b], atol=1e-9)
+
+
+def test_padding_and_batch_do_not_change_a_frames_result():
+    """Extra padding rows (masked, garbage values) and other frames in the batch leave E and H unchanged."""
+    pi, pj, K, _, _ = make_pairs(2, 300, seed=6)
+    g = torch.Generator().manual_seed(1)
+    pj = pj + 0.3 * torch.randn(pj.shape, generator=g, dtype=torch.float64)
+    pj[:, :60] += 20.0
+    mask = torch.ones(2, 300, dtype=torch.bool)
+    pad_i = torch.cat([pi, torch.full((2, 40, 2), float("nan"), dtype=torch.float64)], 1)
+    pad_j = torch.cat([pj, torch.full((2, 40, 2), 1e9, dtype=torch.float64)], 1)
+    pad_m = torch.cat([mask, torch.zeros(2, 40, dtype=torch.bool)], 1)
+    for fn, kw in ((find_essential_ransac, {"K": K, "threshold_px": 0.5}), (find_homography_ransac, {})):
+        ref = fn(pi, pj, mask, generators=gens(2, 3), **kw)
+        padded = fn(pad_i, pad_j, pad_m, generators=gens(2, 3), **kw)
+        assert torch.allclose(padded.model, ref.model, atol=1e-9, equal_nan=True)
+        assert torch.equal(padded.inliers[:, :300], ref.inliers) and not padded.inliers[:, 300:].any()
+        one = fn(pi[1:], pj[1:], mask[1:], generators=gens(1, 4), **{k: (v[1:] if k == "K" else v)
+                                                                         for k, v in kw.items()})
+        assert torch.allclose(one.model[0], ref.model[1], atol=1e-9) and torch.equal(one.inliers[0], ref.inliers[1])
 
 
 def test_too_few_points_fail_and_bad_shapes_raise():
