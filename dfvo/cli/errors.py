@@ -1,16 +1,32 @@
-"""How the command-line tools end on an expected error: one line on stderr, the traceback in the run's log file."""
+"""How the command-line tools end on an expected error: one line on stderr, the traceback in the run's log file.
+
+Expected errors are the user's to fix, not bugs: bad settings, data, checkpoints or folders (``ValueError``,
+``OSError`` and their subclasses), a missing optional extra (``ImportError``), and a config Hydra cannot compose (an
+unknown key, a wrong type, an unknown group option). Each ends with ``TOOL: error: MESSAGE [log: FILE]`` on stderr;
+the log file (Hydra's job log, ``OUT/infer.log``) holds the message and the traceback. ``verbose=true`` on the
+command line (or ``HYDRA_FULL_ERROR=1``) shows the traceback instead.
+"""
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
+import time
+import traceback
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NoReturn
 
-__all__ = ["EXPECTED_ERRORS", "report_error"]
+__all__ = ["EXPECTED_ERRORS", "LOG_ATTRIBUTE", "report_error", "one_line", "run_reporting_errors",
+           "argv_value", "argv_flag"]
 
 # bad settings, data, checkpoints or folders, and missing optional extras: the user's to fix, not bugs
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, ImportError)
+# an exception re-raised from a multirun job carries its job's log file here (survives the launcher's pickling)
+LOG_ATTRIBUTE = "dfvo_log_file"
+_NOISE = ("to append to your config", "full_key:", "reference_type=", "object_type=", "config search path",
+          "provider=", "set the environment variable hydra_full_error")
 
 
 def _log_files() -> list[Path]:
@@ -19,10 +35,10 @@ def _log_files() -> list[Path]:
 
 def report_error(tool: str, message: str, exc: BaseException | None = None, exit_code: int = 1) -> NoReturn:
     """Print ``tool: message`` (the message is one line, or one line per problem; plus where the log is) to stderr,
-    write the
-    message and the traceback of ``exc`` to the log files of the root logger (Hydra's job log), and exit.
+    write the message and the traceback of ``exc`` to the log files of the root logger (Hydra's job log), and exit.
 
-    Under a Hydra multirun the error is raised again instead (the launcher reports the failed job)."""
+    Under a Hydra multirun the error is raised again instead (the launcher reports the failed job; the job's log
+    file rides along as the attribute :data:`LOG_ATTRIBUTE`)."""
     logs = _log_files()
     record = logging.LogRecord("dfvo", logging.ERROR, __file__, 0, "%s", (message,),
                                (type(exc), exc, exc.__traceback__) if exc is not None else None)
@@ -30,6 +46,8 @@ def report_error(tool: str, message: str, exc: BaseException | None = None, exit
         if isinstance(handler, logging.FileHandler):
             handler.handle(record)
     if exc is not None and _in_multirun():
+        if logs:
+            setattr(exc, LOG_ATTRIBUTE, str(logs[0]))
         raise exc
     text = message.strip() or (type(exc).__name__ if exc is not None else "failed")
     where = f" [log: {logs[0]}]" if logs else ""
@@ -42,3 +60,105 @@ def _in_multirun() -> bool:
     from hydra.types import RunMode
 
     return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def one_line(exc: BaseException) -> str:
+    """The message of ``exc`` on one line: Hydra's and OmegaConf's multi-line reports (the failing override, the
+    reason, the available options) joined by ``; `` without their bookkeeping lines (``full_key``,
+    ``object_type``, the config search path, the HYDRA_FULL_ERROR hint)."""
+    texts = [str(exc)]
+    cause = exc.__cause__
+    if cause is not None and str(cause) and str(cause) not in texts[0]:
+        texts.append(str(cause))
+    parts: list[str] = []
+    options: list[str] | None = None  # the indented items under "Available options in 'GROUP':"
+    for line in "\n".join(texts).splitlines():
+        text = line.strip()
+        if options is not None and text and line[:1] in ("\t", " "):
+            options.append(text)
+            continue
+        if options is not None:
+            parts[-1] += ", ".join(options)
+            options = None
+        if not text or text.lower().startswith(_NOISE):
+            continue
+        if text.lower().startswith("available options in"):
+            parts.append("a" + text[1:].rstrip(":") + ": ")
+            options = []
+            continue
+        parts.append(text.rstrip("."))
+    if options is not None:
+        parts[-1] += ", ".join(options)
+    return "; ".join(parts) or type(exc).__name__
+
+
+def argv_value(argv: Sequence[str], key: str) -> str | None:
+    """The value of a ``key=value`` override in ``argv`` (the last one wins; quotes stripped), or None."""
+    value = None
+    for arg in argv:
+        name, sep, rest = arg.partition("=")
+        if sep and name.lstrip("+~") == key:
+            value = rest.strip("'\"")
+    return value
+
+
+def argv_flag(argv: Sequence[str], key: str) -> bool:
+    """Whether ``key=true`` (or ``1``, ``yes``, ``on``) is among the overrides of ``argv``."""
+    value = argv_value(argv, key)
+    return value is not None and value.lower() in ("true", "1", "yes", "on")
+
+
+def _write_log(path: Path, message: str, exc: BaseException) -> Path | None:
+    """Append the message and the traceback of ``exc`` to ``path`` (folders created); None when that fails."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        with path.open("a") as f:
+            f.write(f"[{stamp}][dfvo][ERROR] - {message}\n")
+            f.write("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+    except OSError:
+        return None
+    return path
+
+
+def run_reporting_errors(tool: str, hydra_main: Callable[[], object], log_name: str,
+                         argv: Sequence[str] | None = None) -> None:
+    """Run a ``@hydra.main`` function so that an expected error that escapes it (a config Hydra cannot compose, or a
+    multirun job's error) ends with one line on stderr and exit status 1, like the errors the task itself reports.
+
+    Hydra prints such errors itself, on several lines (with a traceback for a failed multirun job); here Hydra is
+    asked to raise them (``HYDRA_FULL_ERROR=1`` for this process) and they are reported on one line. The traceback
+    goes to ``OUT/LOG_NAME`` when the command line sets ``out_dir=OUT`` (a failed run says in OUT what failed),
+    or to the failed job's own log. ``verbose=true`` or a user's own ``HYDRA_FULL_ERROR`` keep the full traceback.
+
+    Args:
+        tool: the command's name for the message (``dfvo-infer``).
+        hydra_main: the decorated function (called without arguments; Hydra reads ``sys.argv``).
+        log_name: the log file's name inside ``out_dir`` (``infer.log``).
+        argv: the command line (default ``sys.argv[1:]``).
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if os.environ.get("HYDRA_FULL_ERROR") or argv_flag(argv, "verbose"):
+        os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # verbose: Hydra's complete traceback, not its summary
+        hydra_main()
+        return
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises instead of printing its own multi-line report
+    try:
+        hydra_main()
+    except BrokenPipeError:  # stdout closed by the reader (``--cfg job | head``): end quietly, as shell tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(1)
+    except (HydraException, OmegaConfBaseException, *EXPECTED_ERRORS) as err:
+        message = one_line(err) if isinstance(err, HydraException | OmegaConfBaseException) else str(err).strip()
+        log = getattr(err, LOG_ATTRIBUTE, None)
+        if log is None:
+            out_dir = argv_value(argv, "out_dir")
+            multirun = "-m" in argv or "--multirun" in argv
+            if out_dir and not (multirun and "," in out_dir):
+                log = _write_log(Path(out_dir) / log_name, message, err)
+        where = f" [log: {log}]" if log else ""
+        print(f"{tool}: error: {message}{where}", file=sys.stderr, flush=True)
+        sys.exit(1)

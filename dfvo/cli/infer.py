@@ -5,37 +5,81 @@
     dfvo-infer seq=10                                           # KITTI odometry 10 from $DFVO_KITTI_ODOM_ROOT
     dfvo-infer -m tracker=hybrid,pnp correspondence=local_best_k,best_n,uniform   # parallel ablation
 
-Expected failures (bad data, settings, checkpoints) end with one line on stderr and the traceback in
-``OUT/infer.log`` (``verbose=true`` raises them with their traceback). Ctrl-C or SIGTERM stop the run after its
-partial outputs are written (exit status 128 + signal number).
+Expected failures (bad data, settings, checkpoints, a config Hydra cannot compose) end with one line on stderr and
+the traceback in ``OUT/infer.log`` (``verbose=true`` shows the traceback instead; :mod:`dfvo.cli.errors`).
+Ctrl-C or SIGTERM stop the run after its partial outputs are written (exit status 128 + signal number); a signal
+before the first frame or after the last one also ends with one line and that status.
 """
 
 from __future__ import annotations
 
+import signal
+from typing import Any
+
 import hydra
 from omegaconf import DictConfig
 
-from dfvo.cli.errors import EXPECTED_ERRORS, report_error
+from dfvo.cli.errors import EXPECTED_ERRORS, report_error, run_reporting_errors
 from dfvo.inference.config import register_configs
 
+__all__ = ["main", "infer_app"]
+
+TOOL = "dfvo-infer"
 register_configs()
 
 
-@hydra.main(config_path="pkg://dfvo.conf.infer", config_name="infer", version_base="1.3")
-def main(cfg: DictConfig) -> float | None:
-    from dfvo.inference.pipeline import RunInterrupted, run_inference
+class _Stopped(KeyboardInterrupt):
+    """SIGINT/SIGTERM outside the tracking loop (while loading, or while writing the results)."""
 
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_stopped(signum: int, frame: Any) -> None:
+    raise _Stopped(signum)
+
+
+def _install_handlers() -> dict[int, Any]:
+    """SIGINT and SIGTERM raise :class:`_Stopped` (the pipeline's own handlers take over during the loop)."""
+    previous: dict[int, Any] = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            previous[sig] = signal.signal(sig, _raise_stopped)
+        except ValueError:  # not the main thread (some launchers): keep the defaults
+            pass
+    return previous
+
+
+@hydra.main(config_path="pkg://dfvo.conf.infer", config_name="infer", version_base="1.3")
+def infer_app(cfg: DictConfig) -> float | None:
+    """The Hydra task: one run of :func:`dfvo.inference.pipeline.run_inference` (one job of a multirun)."""
+    previous = _install_handlers()
     try:
+        from dfvo.inference.pipeline import RunInterrupted, run_inference
+
         summary = run_inference(cfg)
     except RunInterrupted as err:
-        report_error("dfvo-infer", f"interrupted by {err}; the poses so far, their metrics and plots are written",
+        report_error(TOOL, f"interrupted by {err}; the poses so far, their metrics and plots are written",
                      exit_code=128 + err.signum)
+    except KeyboardInterrupt as err:  # a signal while loading or while writing the results
+        signum = getattr(err, "signum", signal.SIGINT)
+        report_error(TOOL, f"interrupted by {signal.Signals(signum).name} before the run finished (while loading "
+                     f"or writing results); its outputs are missing or incomplete", exit_code=128 + signum)
     except EXPECTED_ERRORS as err:
         if cfg.get("verbose", False):
             raise
-        report_error("dfvo-infer", str(err), exc=err)
+        report_error(TOOL, str(err), exc=err)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     metrics = summary.get("metrics") or {}
     return metrics.get("rpe_m")
+
+
+def main() -> None:
+    """Entry point of ``dfvo-infer`` and ``python infer.py``: :func:`infer_app` with one-line config errors."""
+    run_reporting_errors(TOOL, infer_app, "infer.log")
 
 
 if __name__ == "__main__":

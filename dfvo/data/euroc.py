@@ -11,7 +11,8 @@ Layout (``root`` is the sequence folder holding ``mav0/``, or ``mav0/`` itself):
 Convention:
     - ``T_BS`` maps points of the camera (sensor S) into the body frame B: it is ``T_body_cam``. The ground
       truth gives the body (IMU) pose ``T_w_body`` at 200 Hz; a frame takes the pose nearest in time within
-      ``gt_tolerance`` seconds (exact integer nanoseconds) and the camera pose is ``T_w_cam = T_w_body @ T_BS``.
+      ``gt_tolerance`` seconds (:func:`dfvo.data.timed_poses.associate_frames`; both sides ``ns * 1e-9``) and the
+      camera pose is ``T_w_cam = T_w_body @ T_BS``.
       The world frame is the ground truth's own (the first pose is not the identity).
     - Frames without a ground-truth pose follow the ``unmatched`` policy of :mod:`dfvo.data.timed_poses`
       (default ``"trim"``: the frames before the ground truth starts are dropped, and said so). The frame range
@@ -34,9 +35,10 @@ import yaml
 from dfvo.data.image_folder import FramePrep
 from dfvo.data.image_io import DatasetError, DatasetNotFoundError, image_size, require_dir, require_file
 from dfvo.data.intrinsics_check import check_intrinsics
-from dfvo.data.timed_poses import associate_nearest, attach_ground_truth, poses_from_quaternions, read_rows
+from dfvo.data.sequence import FrameSequence
+from dfvo.data.timed_poses import associate_frames, attach_ground_truth, read_ground_truth, read_rows
 from dfvo.data.transforms import check_working_size
-from dfvo.inference.frames import FrameSequence
+from dfvo.eval.trajectory_io import read_euroc
 
 __all__ = ["EurocCamera", "EurocSequence", "open_euroc", "read_sensor_yaml", "read_euroc_groundtruth"]
 
@@ -125,27 +127,14 @@ def read_frame_list(cam_dir: Path) -> tuple[np.ndarray, list[Path]]:
 
 
 def read_euroc_groundtruth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """``(timestamps_ns (M,) int64, T_w_body (M,4,4) float64)`` of ``state_groundtruth_estimate0/data.csv``.
+    """``(timestamps (M,) float64 s, T_w_body (M,4,4) float64)`` of ``state_groundtruth_estimate0/data.csv``, read by
+    :func:`dfvo.eval.trajectory_io.read_euroc` (timestamp [ns] -> ``ns * 1e-9`` s, p_RS_R x y z [m], q_RS w x y z;
+    the further columns are ignored).
 
-    Columns used: timestamp [ns], p_RS_R x y z [m], q_RS w x y z (scalar first); the rest is ignored.
+    Raises:
+        DatasetNotFoundError: the file does not exist. DatasetError: a malformed line (file and line named).
     """
-    path = Path(path)
-    rows = read_rows(path, "EuRoC ground truth", 8, sep=",")
-    stamps = np.array([_ns(f[0], path, n, "EuRoC ground truth") for n, f in rows], dtype=np.int64)
-    values = np.empty((len(rows), 7))
-    for i, (lineno, fields) in enumerate(rows):
-        try:
-            values[i] = [float(v) for v in fields[1:8]]
-        except ValueError:
-            raise DatasetError(f"EuRoC ground truth {path} line {lineno}: expected numbers in the position and "
-                               f"quaternion columns, got {','.join(fields[1:8])[:80]!r}") from None
-    if not np.all(np.isfinite(values)):
-        raise DatasetError(f"EuRoC ground truth {path}: non-finite position or quaternion values")
-    try:
-        poses = poses_from_quaternions(values[:, :3], values[:, [4, 5, 6, 3]])
-    except ValueError as err:
-        raise DatasetError(f"EuRoC ground truth {path}: {err}") from None
-    return stamps, poses
+    return read_ground_truth(path, read_euroc, "EuRoC ground truth")
 
 
 def _find_mav0(root: Path) -> Path:
@@ -210,8 +199,8 @@ class EurocSequence:
         keep = np.arange(len(sel))
         gt_path = mav0 / GT_CSV
         if unmatched != "none" and gt_path.is_file():
-            gt_ns, T_w_body = read_euroc_groundtruth(gt_path)
-            match = associate_nearest(stamps[sel], gt_ns, int(round(gt_tolerance * 1e9)))
+            gt_s, T_w_body = read_euroc_groundtruth(gt_path)
+            match = associate_frames(stamps[sel] * 1e-9, gt_s, gt_tolerance)  # the ns -> s of read_euroc
             keep, body, self.report = attach_ground_truth(stamps[sel] * 1e-9, match, T_w_body, unmatched,
                                                           f"EuRoC {self.name}", gt_tolerance)
             self.poses = body @ cam.T_BS  # T_w_cam = T_w_body @ T_body_cam (NaN rows stay NaN)

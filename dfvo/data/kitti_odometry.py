@@ -32,18 +32,18 @@ from dfvo.data.calibration import (
 )
 from dfvo.data.image_io import DatasetError, image_size, list_images, read_image, require_dir
 from dfvo.data.transforms import check_working_size, resize_with_intrinsics
-from dfvo.eval.trajectory_io import read_kitti_poses
+from dfvo.eval.trajectory_io import read_kitti_poses, read_times
 
 CAMERAS = {"color": ("image_2", "image_3", 2, 3), "gray": ("image_0", "image_1", 0, 1)}
 
 
 def read_times_file(path: str | Path) -> np.ndarray:
-    """Read a KITTI ``times.txt`` (one float per line) as (N,) float64."""
-    path = Path(path)
+    """A KITTI ``times.txt`` (one timestamp in seconds a line) as (N,) float64, read by
+    :func:`dfvo.eval.trajectory_io.read_times`; a malformed line is a :class:`DatasetError` naming file and line."""
     try:
-        return np.array([float(line) for line in path.read_text().split()], dtype=np.float64)
+        return read_times(path)
     except ValueError as err:
-        raise DatasetError(f"times file {path}: expected one number (seconds) per line ({err})") from err
+        raise DatasetError(f"times file: {err}") from err
 
 
 class KittiOdometry(Dataset):

@@ -1,12 +1,15 @@
-"""Timestamped ground truth for frame sequences: text tables, quaternions, nearest-timestamp association.
+"""Frame lists and their timestamped ground truth: text tables, nearest-timestamp association, unmatched policies.
 
-Used by the EuRoC and TUM RGB-D readers, whose ground truth runs at its own rate (200 Hz, 100 Hz) and over
-its own time span, so each frame takes the ground-truth pose nearest in time when it lies within a tolerance
-(as evo and the TUM benchmark tools associate).
+Used by the EuRoC and TUM RGB-D readers, whose ground truth runs at its own rate (200 Hz, 100 Hz) and over its own
+time span. The ground-truth files themselves are read by :mod:`dfvo.eval.trajectory_io` (``read_euroc``,
+``read_tum``) and frames are paired with poses by :func:`dfvo.eval.alignment.match_timestamps` (nearest timestamp
+within a tolerance, each pose used once, as evo and the TUM benchmark tools associate); what stays here is the
+part that belongs to datasets: reading the frame lists, and what to do with frames that have no pose.
 
 Convention:
-    - Quaternions are Hamilton, ``(qx, qy, qz, qw)`` (scalar last); EuRoC's w-first columns are reordered by
-      its reader. Poses are (N,4,4) float64 ``T_w_x``.
+    - Times are float64 seconds. Integer nanoseconds (EuRoC) become seconds as ``ns * 1e-9`` on both sides, the
+      conversion :func:`dfvo.eval.trajectory_io.read_euroc` applies to the ground truth, so equal nanosecond stamps
+      stay equal; the float64 seconds resolve ~0.25 us at EuRoC's epoch times, far below any tolerance used.
     - ``unmatched`` policy for frames without a ground-truth pose within the tolerance:
       ``"trim"`` drops the frames before the first and after the last matched frame (ground truth often starts
       late or stops early) and refuses gaps inside; ``"nan"`` keeps every frame, unmatched frames get an all-NaN
@@ -16,13 +19,14 @@ Convention:
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from dfvo.data.image_io import DatasetError, require_file
 
-__all__ = ["UNMATCHED_POLICIES", "read_rows", "parse_floats", "poses_from_quaternions", "associate_nearest",
+__all__ = ["UNMATCHED_POLICIES", "read_rows", "parse_floats", "read_ground_truth", "associate_frames",
            "attach_ground_truth"]
 
 UNMATCHED_POLICIES = ("trim", "nan", "none")
@@ -63,49 +67,40 @@ def parse_floats(fields: list[str], path: Path | str, lineno: int, what: str) ->
     return values
 
 
-def poses_from_quaternions(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
-    """(N,4,4) float64 poses from (N,3) translations and (N,4) quaternions ``(qx, qy, qz, qw)`` (normalised here).
+def read_ground_truth(path: str | Path, reader: Callable, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(timestamps (M,) s, poses (M,4,4))`` of a ground-truth file read by an :mod:`dfvo.eval.trajectory_io`
+    reader (``read_euroc``, ``read_tum``); its errors become :class:`DatasetError` naming ``what``.
 
     Raises:
-        ValueError: a quaternion of (near) zero norm.
+        DatasetNotFoundError: the file does not exist.
+        DatasetError: a malformed line (the eval reader's message: file, line number, what was expected).
     """
-    q = np.asarray(q_xyzw, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    if np.any(norm < 1e-9):
-        raise ValueError(f"zero quaternion in row {int(np.argmax(norm[:, 0] < 1e-9))}")
-    x, y, z, w = (q / norm).T
-    R = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], 1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], 1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], 1),
-    ], 1)
-    T = np.tile(np.eye(4), (len(q), 1, 1))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = np.asarray(t, dtype=np.float64)
-    return T
+    path = require_file(path, what)
+    try:
+        traj = reader(path)
+    except ValueError as err:
+        raise DatasetError(f"{what}: {err}") from err
+    return traj.timestamps, traj.poses
 
 
-def associate_nearest(query: np.ndarray, reference: np.ndarray, tolerance: float | int) -> np.ndarray:
-    """For each query time, the index of the nearest reference time if within ``tolerance``, else -1.
+def associate_frames(frame_times_s: np.ndarray, gt_times_s: np.ndarray, tolerance_s: float) -> np.ndarray:
+    """For each frame, the index of its ground-truth pose (nearest time within ``tolerance_s``, each pose used by
+    one frame: :func:`dfvo.eval.alignment.match_timestamps`), or -1.
 
     Args:
-        query: (N,) times (any order).
-        reference: (M,) times (any order), same unit and dtype family as ``query`` (int64 ns stays exact).
-        tolerance: largest accepted ``|query - reference|`` (inclusive), same unit.
+        frame_times_s: (N,) frame times in seconds. gt_times_s: (M,) ground-truth times in seconds (any order).
+        tolerance_s: largest accepted ``|frame - gt|`` in seconds (inclusive).
 
     Returns:
-        (N,) int64 indices into ``reference`` (-1: no reference time within the tolerance).
+        (N,) int64 indices into the ground truth (-1: no pose within the tolerance).
     """
-    query, reference = np.asarray(query), np.asarray(reference)
-    if len(reference) == 0:
-        return np.full(len(query), -1, dtype=np.int64)
-    order = np.argsort(reference, kind="stable")
-    ref = reference[order]
-    right = np.clip(np.searchsorted(ref, query), 0, len(ref) - 1)
-    left = np.clip(right - 1, 0, len(ref) - 1)
-    best = np.where(np.abs(query - ref[left]) <= np.abs(ref[right] - query), left, right)
-    dt = np.abs(query - ref[best])
-    return np.where(dt <= tolerance, order[best], -1).astype(np.int64)
+    from dfvo.eval.alignment import match_timestamps
+
+    match = np.full(len(frame_times_s), -1, dtype=np.int64)
+    i_frame, i_gt = match_timestamps(np.asarray(frame_times_s, np.float64), np.asarray(gt_times_s, np.float64),
+                                     float(tolerance_s))
+    match[i_frame] = i_gt
+    return match
 
 
 def attach_ground_truth(frame_times_s: np.ndarray, match: np.ndarray, gt_poses: np.ndarray, unmatched: str,
@@ -114,7 +109,7 @@ def attach_ground_truth(frame_times_s: np.ndarray, match: np.ndarray, gt_poses: 
 
     Args:
         frame_times_s: (N,) frame times in seconds (for the messages).
-        match: (N,) index of each frame's ground-truth pose, -1 when none (:func:`associate_nearest`).
+        match: (N,) index of each frame's ground-truth pose, -1 when none (:func:`associate_frames`).
         gt_poses: (M,4,4) ground-truth poses.
         unmatched: ``"trim"``, ``"nan"`` or ``"none"`` (module docstring).
         what: the sequence, for messages.

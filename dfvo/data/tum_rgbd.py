@@ -9,8 +9,8 @@ Layout (``root`` is e.g. ``rgbd_dataset_freiburg1_xyz/``)::
 Convention:
     - ``groundtruth.txt`` already gives the colour camera: poses are ``T_w_cam`` in the motion-capture world
       (no extrinsic needed). A frame takes the pose nearest in time within ``gt_tolerance`` (default 0.02 s, the
-      TUM benchmark tools' ``max_difference``); frames without one follow the ``unmatched`` policy of
-      :mod:`dfvo.data.timed_poses` (default ``"trim"``).
+      TUM benchmark tools' ``max_difference``; :func:`dfvo.data.timed_poses.associate_frames`); frames without one
+      follow the ``unmatched`` policy of :mod:`dfvo.data.timed_poses` (default ``"trim"``).
     - Intrinsics: given (``fx, fy, cx, cy`` and optional ``dist`` in pixels of the stored frames), or the
       published calibration of the colour camera of the sensor named in the folder (``freiburg1|2|3``) or by
       ``camera=fr1|fr2|fr3``, table :data:`TUM_CAMERAS` (from the TUM RGB-D benchmark's camera-calibration
@@ -31,16 +31,11 @@ import torch
 from dfvo.data.image_folder import FramePrep
 from dfvo.data.image_io import DatasetError, DatasetNotFoundError, image_size, require_dir
 from dfvo.data.intrinsics_check import check_intrinsics
-from dfvo.data.timed_poses import (
-    associate_nearest,
-    attach_ground_truth,
-    parse_floats,
-    poses_from_quaternions,
-    read_rows,
-)
+from dfvo.data.sequence import FrameSequence
+from dfvo.data.timed_poses import associate_frames, attach_ground_truth, parse_floats, read_ground_truth, read_rows
 from dfvo.data.transforms import check_working_size
+from dfvo.eval.trajectory_io import read_tum
 from dfvo.geometry.camera import intrinsics_matrix
-from dfvo.inference.frames import FrameSequence
 
 __all__ = ["TUM_CAMERAS", "TumRgbdSequence", "open_tum", "tum_camera_from_name", "read_tum_groundtruth"]
 
@@ -77,14 +72,13 @@ def read_frame_list(root: Path) -> tuple[np.ndarray, list[Path]]:
 
 
 def read_tum_groundtruth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """``(timestamps (M,) s, T_w_cam (M,4,4))`` of a TUM ``groundtruth.txt`` (``t tx ty tz qx qy qz qw``)."""
-    rows = read_rows(path, "TUM ground truth", 8)
-    values = np.array([parse_floats(f[:8], path, n, "TUM ground truth") for n, f in rows])
-    try:
-        poses = poses_from_quaternions(values[:, 1:4], values[:, 4:8])
-    except ValueError as err:
-        raise DatasetError(f"TUM ground truth {path}: {err}") from None
-    return values[:, 0], poses
+    """``(timestamps (M,) s, T_w_cam (M,4,4))`` of a TUM ``groundtruth.txt`` (``t tx ty tz qx qy qz qw``), read by
+    :func:`dfvo.eval.trajectory_io.read_tum` (sorted by time).
+
+    Raises:
+        DatasetNotFoundError: the file does not exist. DatasetError: a malformed line (file and line named).
+    """
+    return read_ground_truth(path, read_tum, "TUM ground truth")
 
 
 class TumRgbdSequence:
@@ -140,7 +134,7 @@ class TumRgbdSequence:
         gt_path = root / "groundtruth.txt"
         if unmatched != "none" and gt_path.is_file():
             gt_t, gt_poses = read_tum_groundtruth(gt_path)
-            match = associate_nearest(stamps[sel], gt_t, gt_tolerance)
+            match = associate_frames(stamps[sel], gt_t, gt_tolerance)
             keep, self.poses, self.report = attach_ground_truth(stamps[sel], match, gt_poses, unmatched,
                                                                 f"TUM {self.name}", gt_tolerance)
         else:

@@ -28,9 +28,9 @@ import torch
 from dfvo.data.image_folder import FramePrep
 from dfvo.data.image_io import DatasetError, require_file
 from dfvo.data.intrinsics_check import check_intrinsics
+from dfvo.data.sequence import FrameSequence
 from dfvo.data.transforms import check_working_size
 from dfvo.geometry.camera import intrinsics_matrix
-from dfvo.inference.frames import FrameSequence
 
 __all__ = ["VideoReader", "VideoSequence", "open_video", "PYAV_HINT"]
 

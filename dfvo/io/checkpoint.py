@@ -149,6 +149,7 @@ def save_weights(model: nn.Module, path: str | Path, metadata: dict[str, Any],
              for k, v in model.state_dict().items()}
     tmp = path.with_name(path.name + ".tmp")
     save_file(state, str(tmp), metadata={k: str(v) for k, v in metadata.items()})
+    tmp.chmod(0o644)  # safetensors writes 0600; exported weights are meant to be shared
     tmp.replace(path)
     return path
 

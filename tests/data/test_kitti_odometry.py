@@ -171,6 +171,17 @@ def test_times_count_mismatch(tmp_path: Path) -> None:
         KittiOdometry(tmp_path, "00")
 
 
+def test_malformed_times_file_names_the_line(tmp_path: Path) -> None:
+    """times.txt is read by dfvo.eval.trajectory_io.read_times: a bad line is named by file and line number."""
+    seq = make_sequence(tmp_path, n=3, times=3)
+    (seq / "times.txt").write_text("0.0\n1.0e-01 0.2\n2.0e-01\n")
+    with pytest.raises(DatasetError, match=r"^times file: .*times.txt:2: expected 1 numbers, got 2"):
+        KittiOdometry(tmp_path, "00")
+    (seq / "times.txt").write_text("0.0\nabc\n2.0e-01\n")
+    with pytest.raises(DatasetError, match=r"times.txt:2: non-numeric value"):
+        KittiOdometry(tmp_path, "00")
+
+
 def test_left_right_count_mismatch(tmp_path: Path) -> None:
     make_sequence(tmp_path, n=5, n_right=3)
     with pytest.raises(DatasetError, match=r"image_2 has 5 images but image_3 has 3"):

@@ -1,14 +1,16 @@
-"""Nearest-timestamp association and quaternion poses (the pieces the EuRoC and TUM readers share)."""
+"""Frames to timestamped ground truth: the association (dfvo.eval's match_timestamps behind associate_frames), the
+ns -> s conversion EuRoC needs, the eval readers' errors as dataset errors, and the unmatched policies."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from dfvo.data.image_io import DatasetError
-from dfvo.data.timed_poses import associate_nearest, attach_ground_truth, poses_from_quaternions
-
-Rotation = pytest.importorskip("scipy.spatial.transform", reason="SciPy (test-only reference) not installed").Rotation
+from dfvo.data.image_io import DatasetError, DatasetNotFoundError
+from dfvo.data.timed_poses import associate_frames, attach_ground_truth, read_ground_truth
+from dfvo.eval.trajectory_io import read_euroc, read_tum
 
 
 def brute_force(query: np.ndarray, ref: np.ndarray, tol: float) -> np.ndarray:
@@ -19,36 +21,47 @@ def brute_force(query: np.ndarray, ref: np.ndarray, tol: float) -> np.ndarray:
     return np.array(out)
 
 
-def test_association_matches_brute_force() -> None:
+def test_association_matches_brute_force_when_each_frame_has_its_own_pose() -> None:
     rng = np.random.default_rng(0)
-    ref = rng.uniform(0, 10, 300)  # unsorted
-    query = np.concatenate([rng.uniform(-1, 11, 200), [ref[5], -5.0, 20.0]])
-    for tol in (0.001, 0.01, 0.1):
-        np.testing.assert_array_equal(associate_nearest(query, ref, tol), brute_force(query, ref, tol))
-    assert list(associate_nearest(np.array([1.0]), np.array([]), 1.0)) == [-1]
-    assert list(associate_nearest(np.array([0.0, 3.0]), np.array([2.5]), 0.5)) == [-1, 0]
+    ref = rng.permutation(np.arange(300) * 0.033 + rng.uniform(-0.001, 0.001, 300))  # unsorted, 30 Hz
+    query = np.concatenate([np.sort(ref)[::3] + rng.uniform(-0.004, 0.004, 100), [-5.0, 20.0]])
+    for tol in (0.001, 0.005, 0.01):
+        np.testing.assert_array_equal(associate_frames(query, ref, tol), brute_force(query, ref, tol))
+    assert list(associate_frames(np.array([1.0]), np.array([]), 1.0)) == [-1]
+    assert list(associate_frames(np.array([0.0, 3.0]), np.array([2.5]), 0.5)) == [-1, 0]
+    # each pose serves one frame: of two frames near one pose the closer keeps it
+    assert list(associate_frames(np.array([0.99, 1.02]), np.array([1.0]), 0.05)) == [0, -1]
 
 
-def test_association_exact_in_nanoseconds() -> None:
-    # float64 seconds cannot tell 1403636579.763555584 from ...585; int64 nanoseconds can
-    ref = np.array([1403636579763555584, 1403636579763555585], dtype=np.int64)
-    query = np.array([1403636579763555585, 1403636579763555584, 1403636579763555586 + 10], dtype=np.int64)
-    assert list(associate_nearest(query, ref, 0)) == [1, 0, -1]
-    assert list(associate_nearest(query, ref, 10)) == [1, 0, -1]  # 11 ns away
-    assert list(associate_nearest(query, ref, 11)) == [1, 0, 1]
+def test_euroc_nanoseconds_become_the_same_seconds_on_both_sides(tmp_path: Path) -> None:
+    """EuRoC stamps are int64 ns near 1.4e18: the frame list's ``ns * 1e-9`` and read_euroc's parse of the same digits
+    give identical seconds, so a pose stamped with the frame's own nanosecond matches at zero tolerance, and one
+    stamped 1 ms later matches within 1 ms but not below (float64 seconds resolve ~0.25 us here)."""
+    t0 = 1403636579763555584
+    frames_ns = np.array([t0, t0 + 50_000_000, t0 + 100_000_000], dtype=np.int64)
+    gt_ns = [t0 + 100_000_000, t0 + 1_000_000, t0 + 50_000_000 + 1_000_000]  # unsorted: read_euroc sorts by time
+    rows = ["#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []"]
+    rows += [f"{t},{k},0,0,1,0,0,0" for k, t in enumerate(gt_ns)]
+    (tmp_path / "data.csv").write_text("\n".join(rows) + "\n")
+    gt_s, poses = read_ground_truth(tmp_path / "data.csv", read_euroc, "EuRoC ground truth")
+    assert list(poses[:, 0, 3]) == [1.0, 2.0, 0.0]  # sorted by time
+    frames_s = frames_ns * 1e-9
+    assert frames_s[2] == gt_s[2]  # the same nanosecond gives the same float64 seconds
+    assert list(associate_frames(frames_s, gt_s, 0.0)) == [-1, -1, 2]
+    assert list(associate_frames(frames_s, gt_s, 0.001 + 1e-6)) == [0, 1, 2]
+    assert list(associate_frames(frames_s, gt_s, 0.001 - 1e-6)) == [-1, -1, 2]
 
 
-def test_quaternion_poses_match_scipy() -> None:
-    rng = np.random.default_rng(1)
-    rot = Rotation.random(20, random_state=2)
-    t = rng.normal(size=(20, 3))
-    q = rot.as_quat() * rng.uniform(0.5, 2.0, (20, 1))  # (x, y, z, w), not normalised
-    T = poses_from_quaternions(t, q)
-    np.testing.assert_allclose(T[:, :3, :3], rot.as_matrix(), atol=1e-12)
-    np.testing.assert_array_equal(T[:, :3, 3], t)
-    np.testing.assert_array_equal(T[:, 3], np.tile([0, 0, 0, 1.0], (20, 1)))
-    with pytest.raises(ValueError, match="zero quaternion in row 1"):
-        poses_from_quaternions(t[:2], np.array([[0, 0, 0, 1.0], [0, 0, 0, 0]]))
+def test_ground_truth_errors_name_file_and_line(tmp_path: Path) -> None:
+    path = tmp_path / "groundtruth.txt"
+    path.write_text("# ground truth\n1305031102.2 1 2 3 0 0 0 1\n1305031102.3 1 2 3 0 0 zero 1\n")
+    with pytest.raises(DatasetError, match=r"^TUM ground truth: .*groundtruth.txt:3: non-numeric value"):
+        read_ground_truth(path, read_tum, "TUM ground truth")
+    path.write_text("1305031102.2 1 2 3 0 0 0 0\n")
+    with pytest.raises(DatasetError, match=r"groundtruth.txt:1: zero quaternion"):
+        read_ground_truth(path, read_tum, "TUM ground truth")
+    with pytest.raises(DatasetNotFoundError, match="missing.txt"):
+        read_ground_truth(tmp_path / "missing.txt", read_tum, "TUM ground truth")
 
 
 def test_policies() -> None:
