@@ -3,14 +3,17 @@
     python scripts/export_checkpoint.py flow  runs/flow_cpu2/self/final.ckpt checkpoints/flow.safetensors \
         --height 96 --width 320
     python scripts/export_checkpoint.py depth runs/depth_stereo_cpu_long/checkpoints/last.ckpt \
-        checkpoints/depth.safetensors --height 96 --width 320
+        checkpoints/depth.safetensors
 
-Only the network that inference needs is kept (the pose network of a depth run is dropped); tensors are stored in
-float16 (loaded back as float32: :func:`dfvo.io.checkpoint.load_weights` casts to the model's dtype). The
-metadata records the network (``task``, ``variant``), the input size it was trained at (``height``/``width``:
-the inference sources resize to it), its depth range, the source checkpoint and its training step, so a model
-card can be checked against the file. The exported network is loaded back and compared with the float32 original
-on a random image before the file is written; the script fails if they disagree by more than fp16 rounding.
+Every training run already writes this file beside its last checkpoint (``runs/<name>/weights.safetensors``); the
+script exports any other checkpoint (a ``best-*.ckpt``, an older run, a state dict). Only the network that inference
+needs is kept (the pose network of a depth run is dropped); tensors are stored in float16 (loaded back as float32:
+:func:`dfvo.io.checkpoint.load_weights` casts to the model's dtype). The metadata is the one training writes
+(:func:`dfvo.training.export.weights_metadata`): the network (``task``, ``variant``, depth range), the input size it
+was trained at (``height``/``width``, from ``--height/--width`` or the ``data`` settings stored in a train.py
+checkpoint; the inference sources resize to it), the source checkpoint, its step and epoch and model identity. The
+exported network is loaded back and compared with the float32 original on a random image before the file is written;
+the script fails if they disagree by more than fp16 rounding.
 """
 
 from __future__ import annotations
@@ -25,19 +28,19 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dfvo.io.checkpoint import CheckpointError, load_weights  # noqa: E402
+from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, CheckpointError, load_weights, save_weights  # noqa: E402
 from dfvo.models.depth_net import DepthNet  # noqa: E402
 from dfvo.models.flow_net import FlowNet  # noqa: E402
 from dfvo.sources.networks import VARIANTS  # noqa: E402
+from dfvo.training.export import weights_metadata  # noqa: E402
 
 
-def _checkpoint_info(path: Path) -> dict[str, str]:
+def _checkpoint_info(path: Path) -> dict:
+    """Step, epoch, model identity and trained size (``data.height``/``width``) of a train.py checkpoint."""
     obj = torch.load(path, map_location="cpu", weights_only=False) if path.suffix == ".ckpt" else {}
-    info = {}
-    for key in ("global_step", "epoch"):
-        if key in obj:
-            info[key] = str(obj[key])
-    return info
+    data = ((obj.get("hyper_parameters") or {}).get("cfg") or {}).get("data") or {} if isinstance(obj, dict) else {}
+    return {"global_step": obj.get("global_step"), "epoch": obj.get("epoch"), "identity": obj.get(MODEL_IDENTITY_KEY),
+            "height": data.get("height"), "width": data.get("width")}
 
 
 def build_network(task: str, path: Path, variant: str | None) -> tuple[torch.nn.Module, dict[str, str]]:
@@ -63,16 +66,21 @@ def main() -> None:
     p.add_argument("checkpoint", type=Path, help="training checkpoint (.ckpt) or state dict")
     p.add_argument("out", type=Path, help="output .safetensors")
     p.add_argument("--variant", default=None, help="FlowNet variant (default: the one the checkpoint holds)")
-    p.add_argument("--height", type=int, required=True, help="input height the network was trained at")
-    p.add_argument("--width", type=int, required=True, help="input width the network was trained at")
+    p.add_argument("--height", type=int, default=None,
+                   help="input height the network was trained at (default: the checkpoint's data.height)")
+    p.add_argument("--width", type=int, default=None,
+                   help="input width the network was trained at (default: the checkpoint's data.width)")
     args = p.parse_args()
     if args.out.suffix != ".safetensors":
         raise SystemExit(f"out={args.out}: expected a .safetensors path")
-    from safetensors.torch import save_file
+    info = _checkpoint_info(args.checkpoint)
+    height, width = args.height or info["height"], args.width or info["width"]
+    if not (height and width):
+        raise SystemExit(f"{args.checkpoint}: records no trained size (data.height/width); pass --height and --width")
 
-    net, meta = build_network(args.task, args.checkpoint, args.variant)
-    meta.update({"height": str(args.height), "width": str(args.width), "source": str(args.checkpoint),
-                 **_checkpoint_info(args.checkpoint)})
+    net, net_meta = build_network(args.task, args.checkpoint, args.variant)
+    meta = weights_metadata(net_meta, int(height), int(width), global_step=info["global_step"], epoch=info["epoch"],
+                            source=args.checkpoint, identity=info["identity"])
     state = {k: v.detach().to(torch.float16).contiguous() if v.is_floating_point() else v.contiguous()
              for k, v in net.state_dict().items()}
     # check: the fp16 copy gives the same output as the original up to fp16 rounding
@@ -80,10 +88,10 @@ def main() -> None:
     back.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
     back.eval()
     torch.manual_seed(0)
-    x = torch.rand(1, 3, args.height, args.width)
+    x = torch.rand(1, 3, int(height), int(width))
     with torch.no_grad():
         if args.task == "flow":
-            y = torch.rand(1, 3, args.height, args.width)
+            y = torch.rand(1, 3, int(height), int(width))
             a, b = net(x, y), back(x, y)
             err = float((a - b).abs().max() / a.abs().max().clamp_min(1e-6))
         else:
@@ -91,8 +99,7 @@ def main() -> None:
             err = float(((a - b).abs() / a).max())
     if err > 1e-2:
         raise SystemExit(f"fp16 export differs from the float32 network by {err:.3g} (relative); not written")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    save_file(state, str(args.out), metadata=meta)
+    save_weights(net, args.out, meta)
     digest = hashlib.sha256(args.out.read_bytes()).hexdigest()[:16]
     print(json.dumps({"out": str(args.out), "bytes": args.out.stat().st_size, "sha256_16": digest,
                       "fp16_relative_error": round(err, 6), **meta}))

@@ -1,6 +1,13 @@
 """``dfvo-train`` / ``python train.py``: train a dfvo network (logic in :mod:`dfvo.training.runner`).
 
-    dfvo-train model=depth_stereo|depth_mono|depth_mono_sc|flow_supervised|flow_self data=...
+    dfvo-train model=depth_stereo|depth_mono|depth_mono_sc|flow_supervised|flow_self data=KIND [trainer=PRESET]
+    dfvo-train trainer=smoke                          # 3 steps + one validation batch: checks a setup end to end
+    dfvo-train trainer=gpu data.batch_size=16         # one GPU, bf16-mixed, channels_last
+    dfvo-train --cfg job                              # the composed config, every default included
+
+The settings and their defaults: :mod:`dfvo.training.config`. Expected failures (bad data, settings, checkpoints, a
+non-finite loss) end with one line on stderr and the traceback in the run's Hydra log (``verbose=true`` raises them
+with their traceback).
 """
 
 from __future__ import annotations
@@ -8,13 +15,25 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
+from dfvo.cli.errors import EXPECTED_ERRORS, report_error
+from dfvo.training.config import register_configs
+
+register_configs()
+
 
 @hydra.main(config_path="pkg://dfvo.conf.train", config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     from dfvo.training.runner import run_training
 
-    result = run_training(cfg)
-    print(f"done: step {result['global_step']}, last checkpoint {result['last_ckpt']}, best {result['best_ckpt']}")
+    try:
+        result = run_training(cfg)
+    except (*EXPECTED_ERRORS, FloatingPointError) as err:
+        if cfg.get("verbose", False):
+            raise
+        report_error("dfvo-train", str(err), exc=err)
+    weights = f", weights {result['weights']}" if result["weights"] else ""
+    print(f"done: step {result['global_step']}, last checkpoint {result['last_ckpt']}, best {result['best_ckpt']}"
+          f"{weights}")
 
 
 if __name__ == "__main__":

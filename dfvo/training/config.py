@@ -1,53 +1,106 @@
 """Typed configuration of ``train.py`` / ``dfvo-train``: the schema every YAML file of ``dfvo/conf/train/`` fills.
 
-The dataclasses hold every default once; ``model/*.yaml`` name their LightningModule (``_target_``) and hold only
-what differs from the schema of their task, ``trainer/*.yaml`` only what differs from :class:`TrainerConfig`.
-``register_configs()`` stores the schemas in Hydra's ConfigStore (``train_schema`` for the root,
-``model/schema/{depth,flow}`` and ``trainer/schema`` for the groups); it runs on import of :mod:`dfvo.cli.train`.
+The dataclasses hold every default once. ``model/*.yaml`` name their schema (``schema/depth`` or ``schema/flow``, whose
+``_target_`` is the LightningModule) and hold only what differs from it; ``trainer/*.yaml`` only what differs from
+:class:`TrainerConfig`; ``data/*.yaml`` only what differs from their kind's schema (:data:`DATA_SCHEMAS`). Hydra
+checks overrides against the schema, so a typo (``model.w_smoth=1``) or a wrong type fails before anything runs;
+the ``__post_init__`` checks run when a node becomes its dataclass (:func:`typed`), before any data or network
+is built. ``python train.py --cfg job`` prints the composed configuration with every default.
+
+``register_configs()`` stores the schemas in Hydra's ConfigStore (``train_schema`` for the root, ``model/schema/KIND``,
+``data/schema/KIND`` and ``trainer/schema/trainer`` for the groups); it runs on import of this module.
+
+The data schemas (one per kind, and :func:`data_root`: ``data.root=`` or the kind's environment variable, never a
+path derived from the repository layout) live in :mod:`dfvo.training.data_config` and are re-exported here.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from dfvo.training.augment import DepthAugmentConfig
+from dfvo.training.data_config import (
+    DATA_SCHEMAS,
+    CropMode,
+    DataConfig,
+    FlowPairDataConfig,
+    FlyingChairsDataConfig,
+    FlyingThingsDataConfig,
+    KittiFlowDataConfig,
+    KittiOdomDataConfig,
+    KittiRawDataConfig,
+    KittiRawSyntheticDataConfig,
+    SintelDataConfig,
+    SyntheticDataConfig,
+    WorldsDataConfig,
+    data_root,
+    positive,
+)
 
-__all__ = ["DepthModelConfig", "FlowLossConfig", "FlowModelConfig", "TrainerConfig", "TrainConfig",
-           "register_configs"]
+__all__ = ["MonitorMode", "FlowMode", "CropMode", "DepthModelConfig", "FlowLossConfig", "FlowModelConfig",
+           "MODEL_SCHEMAS", "DataConfig", "WorldsDataConfig", "SyntheticDataConfig", "KittiRawDataConfig",
+           "KittiOdomDataConfig", "KittiRawSyntheticDataConfig", "FlowPairDataConfig", "FlyingChairsDataConfig",
+           "FlyingThingsDataConfig", "SintelDataConfig", "KittiFlowDataConfig", "DATA_SCHEMAS", "PRECISIONS",
+           "TrainerConfig", "TrainConfig", "register_configs", "typed", "model_config", "data_config", "data_root"]
 
 
+class MonitorMode(StrEnum):
+    """Whether the monitored metric of the ``best`` checkpoint is better when lower or higher."""
+
+    min = "min"
+    max = "max"
+
+
+class FlowMode(StrEnum):
+    """``supervised``: multi-scale EPE on true flow; ``self``: photometric + smoothness + fb consistency."""
+
+    supervised = "supervised"
+    self = "self"
+
+
+# ----------------------------------------------------------------------------------------------------- models
 @dataclass
 class DepthModelConfig:
     """Self-supervised depth (and pose) training (:class:`dfvo.training.depth_module.DepthPoseModule`).
 
     Attributes:
-        name: the model's name (``depth_stereo``, ``depth_mono``, ``depth_mono_sc``; stored in checkpoints).
-        stereo: use the stereo partner (metric depth from the calibrated baseline). temporal: use frames i-1, i+1
+        _target_: the LightningModule built from this node (it receives the whole training config).
+        task: ``depth`` (with ``name``, the identity ``task:name`` written into checkpoints and checked on resume).
+        name: the model's name (``depth_stereo``, ``depth_mono``, ``depth_mono_sc``; set by ``model/NAME.yaml``).
+        stereo: use the stereo partner (metric depth from the calibrated baseline). temporal: use frames i-s, i+s
             through the pose network.
         alpha: SSIM weight of the photometric error. w_smooth: λ_ds of the edge-aware smoothness.
         w_consistency: λ_dc of the inverse-depth consistency (paper "Mono-SC": 5).
+        w_depth_supervised: weight of the log-depth L1 against true depth where the batch has it (synthetic
+            samples; 0: the paper's self-supervised loss alone).
         automask: monodepth2's identity reprojection mask.
-        min_depth, max_depth: depth range (metres). init_depth: initial depth of the disparity heads (metres).
-        lr: Adam's rate; x0.1 for the last ``1 - lr_drop_fraction`` of the steps (paper: 15 of 20 epochs).
-        log_images_every: steps between TensorBoard images.
+        min_depth, max_depth: depth range (metres). init_depth: initial depth of the disparity heads (metres; null:
+            sigmoid 0.5); 10 m gives the stereo term a gradient from step 0.
+        lr: Adam's rate; x0.1 for the last ``1 - lr_drop_fraction`` of the steps (paper: 15 of 20 epochs; > 1: never).
+        log_images_every: steps between TensorBoard images (0: never).
         monitor, monitor_mode: the metric of the ``best`` checkpoint (metric depth: ``val/abs_rel``; monocular
-            up-to-scale depth: the median-scaled ``val/abs_rel_med``).
-        augment: flips and colour jitter (null: none).
+            up-to-scale depth: the median-scaled ``val/abs_rel_med``); null: no best checkpoint.
+        augment: monodepth2's flips and colour jitter (null: none).
         init_from: start from these weights (DepthNet ``.safetensors``/``.pt``, or a depth ``.ckpt``; not a resume).
+        initialised_from: where a checkpoint's weights started from (written by training, see
+            :mod:`dfvo.training.hparams`).
     """
 
     _target_: str = "dfvo.training.depth_module.DepthPoseModule"
     task: str = "depth"
-    name: str = "depth_stereo"
+    name: str = MISSING
     stereo: bool = True
     temporal: bool = True
     alpha: float = 0.85
     w_smooth: float = 1e-3
     w_consistency: float = 0.0
+    w_depth_supervised: float = 0.0
     automask: bool = True
     min_depth: float = 0.1
     max_depth: float = 100.0
@@ -55,17 +108,33 @@ class DepthModelConfig:
     lr: float = 1e-4
     lr_drop_fraction: float = 0.75
     log_images_every: int = 200
-    monitor: str = "val/abs_rel"
-    monitor_mode: str = "min"
+    monitor: str | None = "val/abs_rel"
+    monitor_mode: MonitorMode = MonitorMode.min
     augment: DepthAugmentConfig | None = field(default_factory=DepthAugmentConfig)
     init_from: str | None = None
     initialised_from: str | None = None
 
+    def __post_init__(self) -> None:
+        if self.task != "depth":
+            raise ValueError(f"model.task={self.task!r}; the depth schema (model/schema/depth) trains task 'depth'")
+        if not (self.stereo or self.temporal):
+            raise ValueError("model: at least one of model.stereo / model.temporal must be true")
+        for key in ("w_smooth", "w_consistency", "w_depth_supervised"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"model.{key}={getattr(self, key)}; expected >= 0")
+        if self.w_consistency > 0 and not self.temporal:
+            raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
+        positive("model", min_depth=self.min_depth, lr=self.lr, lr_drop_fraction=self.lr_drop_fraction,
+                  init_depth=self.init_depth)
+        if self.max_depth <= self.min_depth:
+            raise ValueError(f"model.max_depth={self.max_depth}; expected > model.min_depth={self.min_depth}")
+
 
 @dataclass
 class FlowLossConfig:
-    """Self-supervised flow loss: ``alpha`` SSIM weight, ``w_smooth`` λ_fs, ``w_consistency`` λ_fc, ``occlusion``
-    (mask the photometric and consistency terms with the forward-backward occlusion mask)."""
+    """Self-supervised flow loss: ``alpha`` SSIM weight (alpha*(1-SSIM)/2 + (1-alpha)*|I-I'|), ``w_smooth`` λ_fs
+    (edge-aware smoothness of the flow), ``w_consistency`` λ_fc (forward-backward consistency), ``occlusion`` (mask
+    the photometric and consistency terms with the forward-backward occlusion mask)."""
 
     alpha: float = 0.85
     w_smooth: float = 0.1
@@ -78,18 +147,21 @@ class FlowModelConfig:
     """Optical flow training (:class:`dfvo.training.flow_module.FlowModule`).
 
     Attributes:
-        name: the model's name (``flow_supervised``, ``flow_self``; stored in checkpoints).
-        mode: ``supervised`` (multi-scale EPE on true flow) or ``self`` (photometric + smoothness + consistency).
-        variant: FlowNet variant (``default``, ``small``, ``tiny``).
-        lr, lr_milestones, lr_gamma: Adam, multiplied by ``lr_gamma`` at each milestone epoch.
+        _target_, task (``flow``), name (``flow_supervised``, ``flow_self``): as :class:`DepthModelConfig`.
+        mode: see :class:`FlowMode` (supervised: multi-scale EPE on visible pixels, each scale / 2^scale).
+        variant: FlowNet variant (``default``, ``small``, ``tiny``; :class:`dfvo.models.flow_net.FlowNetConfig`).
+        lr, lr_milestones, lr_gamma: Adam (paper: 1e-4 for 15 epochs, then 1e-5), multiplied by ``lr_gamma`` at each
+            milestone epoch.
         init_from: start from these weights (a FlowModule ``.ckpt`` or a FlowNet ``.safetensors``/``.pt``).
-        log_images_every: steps between TensorBoard images. monitor, monitor_mode: metric of the ``best`` checkpoint.
+        log_images_every: steps between TensorBoard images (flow colours, fb inconsistency, visibility).
+        monitor, monitor_mode: metric of the ``best`` checkpoint (``val/epe``: validation data with true flow).
+        loss: the self-supervised loss (mode ``self``).
     """
 
     _target_: str = "dfvo.training.flow_module.FlowModule"
     task: str = "flow"
-    name: str = "flow_supervised"
-    mode: str = "supervised"
+    name: str = MISSING
+    mode: FlowMode = FlowMode.supervised
     variant: str = "small"
     lr: float = 1e-4
     lr_milestones: list[int] = field(default_factory=lambda: [15])
@@ -98,13 +170,53 @@ class FlowModelConfig:
     initialised_from: str | None = None
     log_images_every: int = 200
     monitor: str | None = "val/epe"
-    monitor_mode: str = "min"
+    monitor_mode: MonitorMode = MonitorMode.min
     loss: FlowLossConfig = field(default_factory=FlowLossConfig)
+
+    def __post_init__(self) -> None:
+        from dfvo.models.flow_net import FlowNetConfig
+
+        if self.task != "flow":
+            raise ValueError(f"model.task={self.task!r}; the flow schema (model/schema/flow) trains task 'flow'")
+        try:
+            FlowNetConfig.variant(self.variant)
+        except ValueError as err:
+            raise ValueError(f"model.variant={self.variant!r}: {err}") from None
+        positive("model", lr=self.lr, lr_gamma=self.lr_gamma)
+
+
+MODEL_SCHEMAS: dict[str, type] = {"depth": DepthModelConfig, "flow": FlowModelConfig}
+
+
+# ---------------------------------------------------------------------------------------------------- trainer
+PRECISIONS = ("32-true", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true")
 
 
 @dataclass
 class TrainerConfig:
-    """Lightning ``Trainer`` settings (``trainer=default``; ``trainer=ddp`` and ``trainer=smoke`` change a few)."""
+    """Lightning ``Trainer`` settings and the run's checkpoint outputs.
+
+    ``trainer=default`` is this schema; ``trainer=smoke`` (a few steps), ``trainer=gpu`` (one GPU, bf16) and
+    ``trainer=ddp`` change a few fields.
+
+    Attributes:
+        accelerator: ``auto`` (CUDA when visible, else CPU), ``cpu``, ``gpu``. devices: ``auto``, a count or a list.
+        strategy: ``auto`` or ``ddp`` (one process per device; CPU: ``devices=N`` processes with gloo).
+        max_epochs (paper: 20, lr drop after 15), max_steps (-1: no limit), limit_train_batches, limit_val_batches
+            (null: all; an int: batches, a float: fraction), check_val_every_n_epoch, num_sanity_val_steps,
+            log_every_n_steps, deterministic, gradient_clip_val: as Lightning's Trainer.
+        precision: one of :data:`PRECISIONS` (``bf16-mixed`` on a GPU; ``32-true`` the reference).
+        channels_last: convolutional networks and image batches in NHWC memory layout (pays on GPUs with mixed
+            precision; measure before using it on a CPU).
+        benchmark: cuDNN autotuning for fixed input sizes (null: Lightning's default).
+        float32_matmul_precision: ``torch.set_float32_matmul_precision`` (``high``: TF32 on Ampere and newer GPUs;
+            null: leave torch's default).
+        validate_at_stop: a run stopped by ``max_steps`` validates its last step (so the monitored metric exists
+            for the ``best`` checkpoint and the final metrics), also when the stop falls mid-epoch.
+        export_weights: write ``RUN/weights.safetensors`` (fp16, the network inference loads, with its metadata)
+            whenever ``checkpoints/last.ckpt`` is written.
+        enable_progress_bar, progress_refresh: the progress bar. logger: TensorBoard under ``RUN/tb``.
+    """
 
     accelerator: str = "auto"
     devices: Any = "auto"
@@ -114,38 +226,115 @@ class TrainerConfig:
     max_steps: int = -1
     log_every_n_steps: int = 10
     check_val_every_n_epoch: int = 1
-    limit_train_batches: Any = None
-    limit_val_batches: Any = None
+    limit_train_batches: int | float | None = None
+    limit_val_batches: int | float | None = None
     num_sanity_val_steps: int = 0
     precision: str = "32-true"
     deterministic: bool = False
     gradient_clip_val: float | None = None
+    channels_last: bool = False
+    benchmark: bool | None = None
+    float32_matmul_precision: str | None = None
+    validate_at_stop: bool = True
+    export_weights: bool = True
     enable_progress_bar: bool = True
     progress_refresh: int = 10
     logger: bool = True
-    channels_last: bool = False
+
+    def __post_init__(self) -> None:
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"trainer.precision={self.precision!r}; expected one of {PRECISIONS}")
+        if self.float32_matmul_precision not in (None, "highest", "high", "medium"):
+            raise ValueError(f"trainer.float32_matmul_precision={self.float32_matmul_precision!r}; expected null, "
+                             "'highest', 'high' or 'medium'")
+        if self.max_steps < -1 or self.max_steps == 0:
+            raise ValueError(f"trainer.max_steps={self.max_steps}; expected -1 (no limit) or a positive count")
 
 
+# ------------------------------------------------------------------------------------------------------- root
 @dataclass
 class TrainConfig:
-    """Root of ``train.py``'s configuration: ``model`` (depth or flow schema), ``data`` (the training data),
-    ``trainer``; ``name`` the run folder ``runs_dir/name``, ``seed``, ``ckpt_path`` (resume exactly), ``threads``
-    (torch threads; 0: torch's default)."""
+    """Root of ``train.py``'s configuration.
+
+    Attributes:
+        model: depth or flow schema (``model=NAME``). data: one of :data:`DATA_SCHEMAS` (``data=KIND``).
+        trainer: :class:`TrainerConfig` (``trainer=default|smoke|gpu|ddp``).
+        name: the run folder ``runs_dir/name`` (default ``<model>_<data>``).
+        runs_dir: where runs are written (relative to the working folder).
+        seed: global seed (weights initialisation). ckpt_path: resume exactly from a ``last.ckpt`` of the same model.
+        threads: torch threads (0: torch's default). verbose: full tracebacks for expected errors.
+    """
 
     model: Any = MISSING
     data: Any = MISSING
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    name: str = MISSING
+    name: str = "${model.name}_${data.name}"
     runs_dir: str = "runs"
     seed: int = 0
     ckpt_path: str | None = None
     threads: int = 0
+    verbose: bool = False
 
 
 def register_configs() -> None:
     """Store the schemas in Hydra's ConfigStore (idempotent)."""
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConfig)
-    cs.store(group="model/schema", name="depth", node=DepthModelConfig)
-    cs.store(group="model/schema", name="flow", node=FlowModelConfig)
+    for task, schema in MODEL_SCHEMAS.items():
+        cs.store(group="model/schema", name=task, node=schema)
+    for kind, schema in DATA_SCHEMAS.items():
+        cs.store(group="data/schema", name=kind, node=schema)
     cs.store(group="trainer/schema", name="trainer", node=TrainerConfig)
+
+
+# ------------------------------------------------------------------------------------------------ typed access
+def _one_line(err: Exception, where: str) -> str:
+    key = getattr(err, "full_key", None)
+    msg = str(getattr(err, "msg", None) or err).splitlines()[0].strip()
+    if key:
+        return f"{where}.{key}: {msg}" if where else f"{key}: {msg}"
+    return f"{where}: {msg}" if where and not msg.startswith(f"{where}.") else msg
+
+
+def typed(node: DictConfig | dict | Any, schema: type | None = None, where: str = "") -> Any:
+    """A config node as its dataclass instance, validated by the dataclass' ``__post_init__``.
+
+    Args:
+        node: a node composed by Hydra (typed by its schema) or a plain dict / untyped node (e.g. the config stored in
+            a checkpoint), which is merged into ``schema`` first.
+        schema: the dataclass of the node (None: the node's own type).
+        where: the node's key for messages (``"model"``).
+
+    Raises:
+        ValueError: one line naming the setting (unknown key, wrong type, missing value, failed check).
+    """
+    try:
+        if not isinstance(node, DictConfig):
+            node = OmegaConf.create(node)
+        if schema is not None and OmegaConf.get_type(node) is not schema:
+            node = OmegaConf.merge(OmegaConf.structured(schema), node)
+        return OmegaConf.to_object(node)
+    except OmegaConfBaseException as err:
+        cause = err.__cause__ if isinstance(err.__cause__, ValueError) else None
+        raise ValueError(str(cause) if cause else _one_line(err, where)) from err
+
+
+def model_config(cfg: DictConfig | dict) -> DepthModelConfig | FlowModelConfig:
+    """The typed ``model`` node of a training config (schema chosen by ``model.task``)."""
+    node = cfg["model"]
+    task = node.get("task") if hasattr(node, "get") else None
+    if task not in MODEL_SCHEMAS:
+        raise ValueError(f"model.task={task!r}; expected one of {sorted(MODEL_SCHEMAS)} (choose model=NAME)")
+    return typed(node, MODEL_SCHEMAS[task], "model")
+
+
+def data_config(cfg: DictConfig | dict) -> DataConfig:
+    """The typed ``data`` node of a training config (schema chosen by ``data.name``)."""
+    node = cfg["data"]
+    name = node.get("name") if hasattr(node, "get") else None
+    if name not in DATA_SCHEMAS:
+        raise ValueError(f"data.name={name!r}; expected one of {sorted(DATA_SCHEMAS)} (choose data=KIND)")
+    return typed(node, DATA_SCHEMAS[name], "data")
+
+
+register_configs()

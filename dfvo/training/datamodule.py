@@ -1,42 +1,52 @@
-"""LightningDataModule serving ``data=kitti_raw|kitti_odom|synthetic|kitti_raw_synthetic`` and the flow datasets
-(``data=flyingchairs|flyingthings|sintel|kitti_flow``) for every task.
+"""LightningDataModule serving every ``data=KIND`` of ``dfvo/conf/train/data/`` for every task.
 
-Config (``cfg.data``, see ``conf/data/*.yaml``): name, root, height, width, batch_size, num_workers, seed,
-and per dataset: ``drives`` (kitti_raw), ``sequences`` (kitti_odom), ``seeds``/``num_frames`` (synthetic),
-``resize``/``crop``/``train_split``/``val_split`` and the dataset's own keys (flyingchairs, flyingthings, sintel,
-kitti_flow: frame pairs with true flow, :mod:`dfvo.data.flow_datasets`; ``val_split`` null = synthetic validation),
-``val_seeds``/``val_num_frames``/``val_every`` (the synthetic validation worlds, always synthetic because
-only they have true depth and flow). Samples are whatever the datasets return (keys of :mod:`dfvo.data`).
+Config: ``cfg.data``, typed by its kind's schema (:data:`dfvo.training.config.DATA_SCHEMAS`): video kinds
+(``synthetic``, ``kitti_raw``, ``kitti_odom``, ``kitti_raw_synthetic``) give temporal snippets (i-s, i, i+s) for every
+gap s of ``data.frame_skips`` (depth-pose: the target and its source views; flow: the pairs i-s → i, i → i+s; the
+synthetic flow set gives the pairs (k, k+s) with their true flow); the flow pair kinds (``flyingchairs``,
+``flyingthings``, ``sintel``, ``kitti_flow``, :mod:`dfvo.data.flow_datasets`) give pairs with true flow. Validation is
+on the synthetic worlds of ``data.val_seeds`` (true depth and flow; the default scenario at gap 1, so the metric stays
+comparable across training settings) or a flow dataset's ``data.val_split``. Dataset roots come from ``data.root`` or
+the kind's environment variable (:func:`dfvo.training.config.data_root`). Samples are whatever the datasets return
+(keys of :mod:`dfvo.data`).
 
-Shuffling uses :class:`ResumableSampler` (rank and world size from the trainer): the order of epoch e is a
-permutation seeded by (seed, e) only, split into disjoint DDP shards. The training position (epoch, batches of
-that epoch already trained) is saved in every checkpoint, by the *stateful* loader (:class:`ResumableLoader`) and
-by the datamodule (:meth:`DFVODataModule.state_dict`), and on resume the sampler skips the batches already
-consumed, so a run resumed from a checkpoint written mid-epoch (or at an epoch end) trains on the same batches, in
-the same order, as an uninterrupted one.
+Shuffling uses :class:`~dfvo.training.sampling.ResumableSampler` (rank and world size from the trainer): the order of
+epoch e is a permutation seeded by (seed, e) only, split into disjoint DDP shards. The training position is saved in
+every checkpoint, by the stateful loader and by the datamodule (:meth:`DFVODataModule.state_dict`), so a run resumed
+from a checkpoint written mid-epoch (or at an epoch end) trains on the same batches, in the same order, as an
+uninterrupted one.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
-from collections.abc import Callable, Iterator
+from enum import Enum
 from typing import Any
 
 import lightning as L
 import torch
-from omegaconf import DictConfig, OmegaConf
-from torch.utils.data import ConcatDataset, DataLoader, Dataset, DistributedSampler, Sampler, Subset, default_collate
+from omegaconf import DictConfig
+from torch.utils.data import ConcatDataset, DataLoader, Dataset, DistributedSampler, Subset, default_collate
+
+from dfvo.training.config import (
+    DataConfig,
+    FlowMode,
+    FlowPairDataConfig,
+    KittiOdomDataConfig,
+    KittiRawDataConfig,
+    KittiRawSyntheticDataConfig,
+    WorldsDataConfig,
+    data_config,
+    data_root,
+    model_config,
+)
+from dfvo.training.sampling import ResumableLoader, ResumableSampler
+from dfvo.training.snippets import SkipSnippets
+
+__all__ = ["DFVODataModule", "collate_common_keys", "ResumableSampler", "ResumableLoader"]
 
 log = logging.getLogger("dfvo.training")
-
-FLOW_DATASETS = ("flyingchairs", "flyingthings", "sintel", "kitti_flow")  # dfvo.data.flow_datasets: flow pairs only
-DATASETS = ("kitti_raw", "kitti_odom", "synthetic", "kitti_raw_synthetic", *FLOW_DATASETS)
-
-
-def _get(cfg: Any, key: str, default: Any) -> Any:
-    value = OmegaConf.select(cfg, key, default=default)
-    return default if value is None else value
 
 
 def collate_common_keys(samples: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -47,223 +57,147 @@ def collate_common_keys(samples: list[dict[str, torch.Tensor]]) -> dict[str, tor
     return default_collate([{k: s[k] for k in keys} for s in samples])
 
 
-class ResumableSampler(Sampler[int]):
-    """Shuffling sampler whose order depends only on (seed, epoch) and that can start an epoch part-way.
-
-    Epoch ``e`` is ``torch.randperm(num_samples)`` drawn from a generator seeded with ``seed + e`` (the order
-    ``DistributedSampler(shuffle=True)`` gives), cut or padded to a multiple of ``num_replicas`` like
-    ``DistributedSampler`` (``drop_last``) and sharded as ``indices[rank::num_replicas]``.
-
-    The epoch is ``epoch_fn()`` when given (the trainer's ``current_epoch``: Lightning's ``set_epoch`` value is one
-    too high after resuming from a checkpoint written at an epoch end), else the value of :meth:`set_epoch`.
-    :meth:`load_state_dict` makes the next iteration the saved epoch without its first ``batches`` batches;
-    ``len()`` stays the full shard, because Lightning counts the skipped batches as already done.
+class DFVODataModule(L.LightningDataModule):
+    """Training / validation data for :mod:`dfvo.training.runner` (the task from ``cfg.model``).
 
     Args:
-        num_samples: size of the dataset.
-        batch_size: samples per batch (to skip whole batches).
-        seed: shuffling seed.
-        num_replicas, rank: DDP world size and this process's rank.
-        drop_last: drop the tail that does not divide evenly between replicas (else pad by repeating).
-        epoch_fn: callable returning the current epoch (None: use :meth:`set_epoch`).
-        position_fn: callable returning ``(epoch, batches already trained in it)`` for :meth:`state_dict`
-            (None: the start of the current epoch).
+        cfg: the training config (``model`` and ``data`` nodes; see :mod:`dfvo.training.config`).
+
+    Raises:
+        ValueError: settings that do not fit together (supervised flow on data without true flow, a flow dataset
+            for a depth model), or a bad value (one line naming the setting).
     """
 
-    def __init__(self, num_samples: int, batch_size: int, seed: int = 0, num_replicas: int = 1, rank: int = 0,
-                 drop_last: bool = False, epoch_fn: Callable[[], int] | None = None,
-                 position_fn: Callable[[], tuple[int, int]] | None = None) -> None:
-        if num_samples <= 0 or batch_size <= 0:
-            raise ValueError(f"ResumableSampler: need num_samples > 0 and batch_size > 0, got {num_samples}, "
-                             f"{batch_size}")
-        if not 0 <= rank < num_replicas:
-            raise ValueError(f"ResumableSampler: rank {rank} outside [0, {num_replicas})")
-        self.num_samples, self.batch_size, self.seed = num_samples, batch_size, seed
-        self.num_replicas, self.rank, self.drop_last = num_replicas, rank, drop_last
-        self.epoch_fn, self.position_fn = epoch_fn, position_fn
-        self._epoch = 0
-        self._resume: tuple[int, int] | None = None
-        if drop_last and num_samples % num_replicas:
-            self.shard_size = num_samples // num_replicas
-        else:
-            self.shard_size = math.ceil(num_samples / num_replicas)
-
-    def set_epoch(self, epoch: int) -> None:
-        """Epoch to shuffle for when no ``epoch_fn`` is given (Lightning calls this before every epoch)."""
-        self._epoch = int(epoch)
-
-    @property
-    def epoch(self) -> int:
-        """The epoch the next iteration shuffles for (the resumed one while a resume is pending)."""
-        if self._resume is not None:
-            return self._resume[0]
-        return int(self.epoch_fn()) if self.epoch_fn is not None else self._epoch
-
-    def indices(self, epoch: int) -> list[int]:
-        """This rank's sample order for ``epoch`` (the whole epoch)."""
-        g = torch.Generator()
-        g.manual_seed(self.seed + epoch)
-        order = torch.randperm(self.num_samples, generator=g).tolist()
-        total = self.shard_size * self.num_replicas
-        if total > len(order):  # pad by repeating, as DistributedSampler
-            order += (order * math.ceil(total / len(order)))[:total - len(order)]
-        return order[:total][self.rank::self.num_replicas]
-
-    def __iter__(self) -> Iterator[int]:
-        # a generator: the epoch is read when the first index is requested, i.e. when the epoch really starts
-        epoch, skip = self.epoch, 0
-        if self._resume is not None:
-            epoch, skip = self._resume
-            self._resume = None
-        yield from self.indices(epoch)[skip * self.batch_size:]
-
-    def __len__(self) -> int:
-        return self.shard_size
-
-    def state_dict(self) -> dict[str, int]:
-        """Position to resume from: ``epoch`` and ``batches`` of it already trained, plus the settings that must
-        match for the position to mean the same samples."""
-        epoch, batches = self.position_fn() if self.position_fn is not None else (self.epoch, 0)
-        return {"epoch": int(epoch), "batches": int(batches), "num_samples": self.num_samples,
-                "batch_size": self.batch_size, "num_replicas": self.num_replicas, "seed": self.seed}
-
-    def load_state_dict(self, state: dict[str, int]) -> None:
-        """Make the next iteration start at ``state``'s position (skipping its ``batches`` batches). When the
-        dataset size, batch size, world size or seed changed, the saved position means other samples: the
-        epoch then starts from its beginning (logged)."""
-        settings = ("num_samples", "batch_size", "num_replicas", "seed")
-        now = {k: getattr(self, k) for k in settings}
-        saved = {k: state.get(k) for k in settings}
-        epoch, batches = int(state["epoch"]), int(state["batches"])
-        if saved != now:
-            log.warning("resume: the checkpoint's data position (epoch %d, batch %d) was saved with %s, this run has "
-                        "%s; epoch %d starts from its first batch (not an exact resume)", epoch, batches, saved, now,
-                        epoch)
-            batches = 0
-        self._resume = (epoch, batches)
-
-
-class ResumableLoader(DataLoader):
-    """Training ``DataLoader`` over a :class:`ResumableSampler` that Lightning saves in checkpoints and restores on
-    resume (the ``state_dict`` / ``load_state_dict`` protocol of Lightning's stateful dataloaders)."""
-
-    def state_dict(self) -> dict[str, int]:
-        """The sampler's position (see :meth:`ResumableSampler.state_dict`)."""
-        return self.sampler.state_dict()
-
-    def load_state_dict(self, state: dict[str, int]) -> None:
-        """Restore the sampler's position (see :meth:`ResumableSampler.load_state_dict`)."""
-        self.sampler.load_state_dict(state)
-
-
-class OdometrySnippets(Dataset):
-    """Temporal snippets (``image_prev``, ``image``, ``image_next`` + the frame's other keys) of a frame dataset."""
-
-    def __init__(self, frames: Dataset) -> None:
-        if len(frames) < 3:
-            raise ValueError(f"OdometrySnippets: need at least 3 frames, got {len(frames)}")
-        self.frames = frames
-
-    def __len__(self) -> int:
-        return len(self.frames) - 2
-
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        sample = dict(self.frames[i + 1])
-        sample.pop("timestamp", None)
-        sample["image_prev"] = self.frames[i]["image"]
-        sample["image_next"] = self.frames[i + 2]["image"]
-        return sample
-
-
-class DFVODataModule(L.LightningDataModule):
-    """Training / validation data for :mod:`dfvo.training.runner` (task from ``cfg.model.task``)."""
-
-    def __init__(self, cfg: DictConfig) -> None:
+    def __init__(self, cfg: DictConfig | dict) -> None:
         super().__init__()
-        self.cfg = cfg
-        self.name = str(_get(cfg, "data.name", "synthetic"))
-        if self.name not in DATASETS:
-            raise ValueError(f"data.name: expected one of {DATASETS}, got {self.name!r}")
-        self.task = str(_get(cfg, "model.task", "depth"))
-        supervised_flow = self.task == "flow" and str(_get(cfg, "model.mode", "supervised")) == "supervised"
-        if self.name in FLOW_DATASETS and self.task != "flow":
+        self.model = model_config(cfg)
+        self.data: DataConfig = data_config(cfg)
+        self.name = self.data.name
+        self.task = self.model.task
+        flow_pairs = isinstance(self.data, FlowPairDataConfig)
+        if flow_pairs and self.task != "flow":
             raise ValueError(f"data={self.name} holds optical-flow frame pairs only; train it with "
                              f"model=flow_supervised or model=flow_self (model.task=flow), not model.task={self.task}")
-        if supervised_flow and self.name not in ("synthetic", *FLOW_DATASETS):
-            model = _get(cfg, "model.name", "flow_supervised")
+        supervised_flow = self.task == "flow" and self.model.mode == FlowMode.supervised
+        if supervised_flow and not (flow_pairs or self.name == "synthetic"):
             why = (" (its KITTI samples have none, and a mixed batch keeps only the keys every sample has)"
                    if self.name == "kitti_raw_synthetic" else " has none")
-            raise ValueError(f"model={model} (model.mode=supervised) trains on true optical flow, which only "
-                             f"data=synthetic and the flow datasets {FLOW_DATASETS} provide; data={self.name}{why}. "
-                             "Use data=synthetic (or data=flyingchairs ...), or model=flow_self "
-                             f"for real video (e.g. model=flow_self data={self.name} "
-                             "model.init_from=<a flow_supervised last.ckpt>)")
-        self.height = int(_get(cfg, "data.height", 192))
-        self.width = int(_get(cfg, "data.width", 640))
-        self.batch_size = int(_get(cfg, "data.batch_size", 4))
-        self.num_workers = int(_get(cfg, "data.num_workers", 0))
-        self.seed = int(_get(cfg, "data.seed", 0))
+            raise ValueError(f"model={self.model.name} (model.mode=supervised) trains on true optical flow, which "
+                             f"only data=synthetic and the flow datasets (data=flyingchairs|flyingthings|sintel|"
+                             f"kitti_flow) provide; data={self.name}{why}. Use data=synthetic (or data=flyingchairs "
+                             f"...), or model=flow_self for real video (e.g. model=flow_self data={self.name} "
+                             "model.init_from=<a flow_supervised weights.safetensors or last.ckpt>)")
+        if isinstance(self.data, WorldsDataConfig):
+            from dfvo.data.synthetic import check_training_seeds
+            check_training_seeds(self.data.seeds, "data.seeds")
+            if self.data.device != "cpu" and self.data.num_workers > 0:
+                raise ValueError(f"data.device={self.data.device} renders in the main process; set "
+                                 "data.num_workers=0")
+        self.batch_size = self.data.batch_size
+        self.num_workers = self.data.num_workers
+        self.seed = self.data.seed
         self.train_set: Dataset | None = None
         self.val_set: Dataset | None = None
         self._train_sampler: ResumableSampler | None = None
         self._resume_position: dict[str, int] | None = None
 
-    # ------------------------------------------------------------ datasets
-    def _synthetic(self, seeds: list[int], num_frames: int) -> Dataset:
-        from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticSequenceDataset
-        cls = SyntheticFlowDataset if self.task == "flow" else SyntheticSequenceDataset
-        return cls(list(seeds), num_frames, self.height, self.width)
+    @property
+    def has_validation(self) -> bool:
+        """Whether the config gives validation data (a flow dataset's ``val_split`` or synthetic ``val_seeds``)."""
+        return bool(getattr(self.data, "val_split", None)) or bool(self.data.val_seeds)
 
-    def _kitti_raw(self) -> Dataset:
+    @property
+    def frame_skips(self) -> list[int]:
+        """The gaps s of the training snippets / pairs (``[1]`` for the flow pair datasets)."""
+        return list(getattr(self.data, "frame_skips", [1]))
+
+    # ------------------------------------------------------------ datasets
+    def _synthetic(self, seeds: list[int], num_frames: int, frame_skips: list[int], train: bool = True) -> Dataset:
+        """Synthetic worlds: the training distribution (scenario, speed, turn rate of ``data``) when ``train``, else
+        the default worlds (validation stays comparable across training settings)."""
+        from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticSequenceDataset
+        d = self.data
+        cls = SyntheticFlowDataset if self.task == "flow" else SyntheticSequenceDataset
+        world: dict[str, Any] = {"device": d.device} if isinstance(d, WorldsDataConfig) else {}
+        if train and isinstance(d, WorldsDataConfig):
+            world["scenario"] = list(d.scenario)
+            for key in ("speed", "turn_rate"):
+                value = getattr(d, key)
+                if value is not None:
+                    world[key] = value[0] if len(value) == 1 else tuple(value)
+        return cls(list(seeds), num_frames, d.height, d.width, frame_skips=frame_skips, **world)
+
+    def _need_stereo(self) -> bool:
+        return self.task == "depth" and bool(getattr(self.model, "stereo", False))
+
+    def _kitti_raw(self, data: KittiRawDataConfig | KittiRawSyntheticDataConfig) -> Dataset:
         from dfvo.data.kitti_raw import KittiRawSnippets
-        root = _get(self.cfg, "data.root", None) or _get(self.cfg, "data.kitti_raw_root", None)
-        drives = _get(self.cfg, "data.drives", None)
+        root = data_root(data)
+        drives = list(data.drives) if data.drives else None
+        stereo, skips = self._need_stereo(), self.frame_skips
         try:
-            return KittiRawSnippets(root, self.height, self.width, drives=list(drives) if drives else None,
-                                    stereo=True, temporal=True)
+            if skips == [1]:
+                return KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo, temporal=True)
+            # KittiRawSnippets has no gap: its frame-level form (temporal=False) needs stereo=True, so snippets with
+            # gaps read the right images too (dropped below for models without stereo)
+            frames = KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=True, temporal=False)
         except (OSError, ValueError) as err:
             raise type(err)(f"data={self.name} (data.root={root}): {err}") from err
+        sequences: dict[int, list[int]] = {}
+        for index, (drive, _) in enumerate(frames.samples):
+            sequences.setdefault(drive, []).append(index)
+        snippets = SkipSnippets(frames, list(sequences.values()), skips)
+        return snippets if stereo else _DropKeys(snippets, ("image_right", "T_right_left"))
 
-    def _kitti_odom(self) -> Dataset:
+    def _kitti_odom(self, data: KittiOdomDataConfig) -> Dataset:
         from dfvo.data.kitti_odometry import KittiOdometry
-        root = _get(self.cfg, "data.root", None)
-        seqs = [str(s) for s in _get(self.cfg, "data.sequences", ["06"])]
+        root = data_root(data)
+        seqs = [str(s) for s in data.sequences]
         try:
-            return ConcatDataset([OdometrySnippets(KittiOdometry(root, s, self.height, self.width)) for s in seqs])
+            parts, stereo = [], None if self._need_stereo() else False  # None: when the right images exist
+            for seq in seqs:
+                frames = KittiOdometry(root, seq, data.height, data.width, stereo=stereo)
+                mono = KittiOdometry(root, seq, data.height, data.width, stereo=False) if frames.stereo else None
+                parts.append(SkipSnippets(frames, [range(len(frames))], self.frame_skips, neighbours=mono))
+            return ConcatDataset(parts)
         except (OSError, ValueError) as err:
             raise type(err)(f"data=kitti_odom (data.root={root}, sequences={seqs}): {err}") from err
 
     def _flow_pairs(self, split: str, train: bool) -> Dataset:
         from dfvo.data.flow_datasets import build_flow_dataset
-        return build_flow_dataset(self.name, lambda key, default: _get(self.cfg, f"data.{key}", default), split, train)
+        data = dataclasses.replace(self.data, root=data_root(self.data))
+
+        def get(key: str, default: Any) -> Any:
+            value = getattr(data, key, None)
+            value = value.value if isinstance(value, Enum) else value
+            return default if value is None else value
+        return build_flow_dataset(self.name, get, split, train)
 
     def setup(self, stage: str | None = None) -> None:
+        d = self.data
         if self.train_set is None:
-            syn = lambda: self._synthetic(list(_get(self.cfg, "data.seeds", [0])),  # noqa: E731
-                                          int(_get(self.cfg, "data.num_frames", 50)))
-            if self.name in FLOW_DATASETS:
-                train = self._flow_pairs(str(_get(self.cfg, "data.train_split", "train")), train=True)
-            elif self.name == "synthetic":
-                train = syn()
-            elif self.name == "kitti_raw":
-                train = self._kitti_raw()
-            elif self.name == "kitti_odom":
-                train = self._kitti_odom()
+            if isinstance(d, FlowPairDataConfig):
+                train = self._flow_pairs(d.train_split, train=True)
+            elif isinstance(d, KittiRawSyntheticDataConfig):
+                train = ConcatDataset([self._kitti_raw(d), self._synthetic(d.seeds, d.num_frames, self.frame_skips)])
+            elif isinstance(d, WorldsDataConfig):
+                train = self._synthetic(d.seeds, d.num_frames, self.frame_skips)
+            elif isinstance(d, KittiRawDataConfig):
+                train = self._kitti_raw(d)
+            elif isinstance(d, KittiOdomDataConfig):
+                train = self._kitti_odom(d)
             else:
-                train = ConcatDataset([self._kitti_raw(), syn()])
-            limit = _get(self.cfg, "data.max_train_samples", None)
-            if limit:
-                train = Subset(train, range(min(int(limit), len(train))))
+                raise ValueError(f"data={self.name}: no training set for {type(d).__name__}")
+            if d.max_train_samples:
+                train = Subset(train, range(min(d.max_train_samples, len(train))))
             self.train_set = train
         if self.val_set is None:
-            val_seeds = list(_get(self.cfg, "data.val_seeds", [1000]))
-            val_split = _get(self.cfg, "data.val_split", None) if self.name in FLOW_DATASETS else None
+            val_split = getattr(d, "val_split", None)
             if val_split:  # the flow dataset's own validation pairs (centre crop)
-                self.val_set = self._flow_pairs(str(val_split), train=False)
-            elif val_seeds:
-                val = self._synthetic(val_seeds, int(_get(self.cfg, "data.val_num_frames", 12)))
-                every = int(_get(self.cfg, "data.val_every", 1))
-                self.val_set = Subset(val, range(0, len(val), max(every, 1)))
+                self.val_set = self._flow_pairs(val_split, train=False)
+            elif d.val_seeds:
+                val = self._synthetic(d.val_seeds, d.val_num_frames, [1], train=False)
+                self.val_set = Subset(val, range(0, len(val), d.val_every))
 
     # ------------------------------------------------------------ loaders
     def _rank(self) -> tuple[int, int]:
@@ -271,6 +205,12 @@ class DFVODataModule(L.LightningDataModule):
         if trainer is None:
             return 1, 0
         return int(trainer.world_size), int(trainer.global_rank)
+
+    def _pin_memory(self) -> bool:
+        """Pinned host memory for a CUDA trainer (not for samples rendered on the GPU)."""
+        trainer = getattr(self, "trainer", None)
+        on_cuda = trainer is not None and type(trainer.accelerator).__name__ == "CUDAAccelerator"
+        return on_cuda and getattr(self.data, "device", "cpu") == "cpu"
 
     # ------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:
@@ -310,11 +250,26 @@ class DFVODataModule(L.LightningDataModule):
         self._train_sampler = sampler
         return ResumableLoader(self.train_set, batch_size=self.batch_size, sampler=sampler,
                                num_workers=self.num_workers, drop_last=len(self.train_set) // world >= self.batch_size,
-                               collate_fn=collate_common_keys, persistent_workers=self.num_workers > 0)
+                               collate_fn=collate_common_keys, persistent_workers=self.num_workers > 0,
+                               pin_memory=self._pin_memory())
 
     def val_dataloader(self) -> DataLoader | list:
         if self.val_set is None:
             return []
         world, rank = self._rank()
         sampler = DistributedSampler(self.val_set, num_replicas=world, rank=rank, shuffle=False)
-        return DataLoader(self.val_set, batch_size=self.batch_size, sampler=sampler, num_workers=self.num_workers)
+        return DataLoader(self.val_set, batch_size=self.batch_size, sampler=sampler, num_workers=self.num_workers,
+                          pin_memory=self._pin_memory())
+
+
+class _DropKeys(Dataset):
+    """``dataset`` without some sample keys."""
+
+    def __init__(self, dataset: Dataset, keys: tuple[str, ...]) -> None:
+        self.dataset, self.keys = dataset, keys
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {k: v for k, v in self.dataset[i].items() if k not in self.keys}

@@ -1,24 +1,22 @@
 """Lightning module for self-supervised depth (and pose) training: ``model=depth_stereo|depth_mono|depth_mono_sc``.
 
-Config (``cfg.model``, see ``conf/model/depth_*.yaml``):
-    task: "depth"; name; stereo (use the stereo partner, metric depth from the calibrated baseline);
-    temporal (use i-1, i+1 with the pose network); alpha (0.85); w_smooth (λ_ds = 1e-3);
-    w_consistency (λ_dc, 5 for depth_mono_sc, else 0); automask (monodepth2's identity reprojection);
-    min_depth, max_depth; init_depth (initial depth of the disparity heads, metres; null: sigmoid 0.5);
-    lr (1e-4), lr_drop_fraction (0.75: lr x0.1 for the last quarter of the steps);
-    log_images_every (steps); monitor (metric of the "best" checkpoint). Validation logs the Eigen metrics
-    raw (``val/abs_rel``, ..., metric depth) and median-scaled (``val/abs_rel_med``, ..., monocular models).
-    augment (:class:`dfvo.training.augment.DepthAugmentConfig` fields, null or ``{flip_prob: 0, jitter_prob: 0}``:
-    none): flips and colour jitter drawn from a generator seeded by (``data.seed``, global step, DDP rank), so
-    resuming is exact. init_from: start from the weights of a checkpoint (``.safetensors``/``.pt`` DepthNet state
-    dict, or a depth ``.ckpt``; its pose network too when it holds one) instead of random weights (not a resume:
-    step 0, fresh optimiser; checkpoints record the path as ``model.initialised_from``).
+Config: ``cfg.model``, a :class:`dfvo.training.config.DepthModelConfig` (``model=depth_stereo|depth_mono|
+depth_mono_sc``; the fields and their defaults are documented there). Validation logs the Eigen metrics raw
+(``val/abs_rel``, ..., metric depth) and median-scaled (``val/abs_rel_med``, ..., monocular models). Augmentation
+(flips, colour jitter) is drawn from a generator seeded by (``data.seed``, global step, DDP rank), so resuming is
+exact. ``model.init_from`` starts from the weights of a file (``.safetensors``/``.pt`` DepthNet state dict, or a depth
+``.ckpt``; its pose network too when it holds one) instead of random weights (not a resume: step 0, fresh optimiser;
+checkpoints record the path as ``model.initialised_from``).
 
 Loss (per scale s = 0..3, averaged over scales): every scale's disparity is upsampled to the input
 resolution (monodepth2), each source view (prev, next, stereo partner) is warped into the target, the
 SSIM+L1 error takes a per-pixel minimum over views (out-of-view pixels excluded), plus
 ``w_smooth / 2^s`` x edge-aware smoothness of the mean-normalised disparity at scale s, plus
-``w_consistency`` x the inverse-depth consistency (per-pixel minimum over the temporal views).
+``w_consistency`` x the inverse-depth consistency (per-pixel minimum over the temporal views), plus
+``model.w_depth_supervised`` x the log-depth L1 of that scale's depth against the batch's true ``depth``
+(:func:`dfvo.losses.depth_supervision.log_depth_l1`; synthetic samples; a target <= 0 marks a pixel without
+ground truth, e.g. a real sample of a mixed batch; sky clamped to ``max_depth``) when the batch has ``depth`` and
+the weight is > 0 (default 0: the paper's self-supervised loss alone).
 """
 
 from __future__ import annotations
@@ -32,18 +30,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
+from dfvo.losses.depth_supervision import log_depth_l1
 from dfvo.losses.photometric import min_over_views, ssim_l1_error
 from dfvo.losses.reprojection import reproject
 from dfvo.losses.smoothness import edge_aware_smoothness
 from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth
 from dfvo.models.pose_net import PoseNet
-from dfvo.training.augment import DepthAugmentConfig, augment_depth_batch
+from dfvo.training.augment import augment_depth_batch
+from dfvo.training.config import DepthModelConfig, typed
 from dfvo.training.hparams import recorded_config
-
-
-def _get(cfg: Any, key: str, default: Any) -> Any:
-    value = OmegaConf.select(cfg, key, default=default)
-    return default if value is None else value
 
 
 class DepthPoseModule(L.LightningModule):
@@ -52,38 +47,37 @@ class DepthPoseModule(L.LightningModule):
     ``DepthPoseModule.load_from_checkpoint(path)`` rebuilds the module from the config stored in the checkpoint.
     Batches use the keys of :mod:`dfvo.data`: ``image``, ``K`` and, as configured, ``image_prev``,
     ``image_next`` (temporal), ``image_right`` + ``T_right_left`` (stereo); validation batches add ``depth``.
+
+    Args:
+        cfg: the training config (its ``model`` node is a :class:`~dfvo.training.config.DepthModelConfig`;
+            ``data.seed`` seeds the augmentation), a DictConfig or the plain dict stored in a checkpoint.
     """
 
     def __init__(self, cfg: DictConfig | dict, **_: Any) -> None:
         super().__init__()
         cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)  # dict: from load_from_checkpoint
-        m = cfg.model
-        self.model_type = f"depth:{_get(m, 'name', 'depth')}"
-        self.stereo = bool(_get(m, "stereo", False))
-        self.temporal = bool(_get(m, "temporal", True))
-        if not (self.stereo or self.temporal):
-            raise ValueError("model: at least one of model.stereo / model.temporal must be true")
-        self.alpha = float(_get(m, "alpha", 0.85))
-        self.w_smooth = float(_get(m, "w_smooth", 1e-3))
-        self.w_consistency = float(_get(m, "w_consistency", 0.0))
-        if self.w_consistency > 0 and not self.temporal:
-            raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
-        self.automask = bool(_get(m, "automask", True))
-        self.min_depth = float(_get(m, "min_depth", 0.1))
-        self.max_depth = float(_get(m, "max_depth", 100.0))
-        self.lr = float(_get(m, "lr", 1e-4))
-        self.lr_drop_fraction = float(_get(m, "lr_drop_fraction", 0.75))
-        self.log_images_every = int(_get(m, "log_images_every", 200))
-        init_depth = _get(m, "init_depth", None)
-        self.depth_net = DepthNet(self.min_depth, self.max_depth, None if init_depth is None else float(init_depth))
+        m: DepthModelConfig = typed(cfg.model, DepthModelConfig, "model")
+        self.model_cfg = m
+        self.model_type = f"{m.task}:{m.name}"
+        self.stereo, self.temporal = m.stereo, m.temporal
+        self.alpha, self.w_smooth, self.w_consistency = m.alpha, m.w_smooth, m.w_consistency
+        self.automask = m.automask
+        self.w_depth_supervised = m.w_depth_supervised
+        self.min_depth, self.max_depth = m.min_depth, m.max_depth
+        self.lr, self.lr_drop_fraction = m.lr, m.lr_drop_fraction
+        self.log_images_every = m.log_images_every
+        self.depth_net = DepthNet(self.min_depth, self.max_depth, m.init_depth)
         self.pose_net = PoseNet() if self.temporal else None
-        augment = _get(m, "augment", None)
-        self.augment = DepthAugmentConfig(**OmegaConf.to_container(augment, resolve=True)) if augment else None
-        self.augment_seed = int(_get(cfg, "data.seed", 0))
-        init_from = _get(m, "init_from", None)
-        if init_from:
-            self._init_weights_from(str(init_from))
+        self.augment = m.augment
+        self.augment_seed = int(cfg.data.seed) if "data" in cfg else 0
+        if m.init_from:
+            self._init_weights_from(str(m.init_from))
         self.save_hyperparameters({"cfg": recorded_config(cfg)})
+
+    def export_network(self) -> tuple[torch.nn.Module, dict[str, str]]:
+        """The network inference loads (DepthNet; the pose network stays in the training checkpoint) and the
+        metadata describing it (see :func:`dfvo.training.export.export_weights`)."""
+        return self.depth_net, {"task": "depth", "min_depth": str(self.min_depth), "max_depth": str(self.max_depth)}
 
     def _init_weights_from(self, path: str) -> None:
         """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path``."""
@@ -177,6 +171,10 @@ class DepthPoseModule(L.LightningModule):
                 cons = depth_consistency_loss(diffs, dvalids)
                 loss_s = loss_s + self.w_consistency * cons
                 terms[f"consistency_s{s}"] = cons.detach()
+            if self.w_depth_supervised > 0 and "depth" in batch:
+                sup, _ = log_depth_l1(depth, batch["depth"], self.max_depth)
+                loss_s = loss_s + self.w_depth_supervised * sup
+                terms[f"depth_supervised_s{s}"] = sup.detach()
             terms[f"loss_s{s}"] = loss_s.detach()
             total = total + loss_s / len(SCALES)
         vis["disp"] = disps[0].detach()

@@ -1,10 +1,8 @@
 """Lightning module for the optical flow network: supervised (synthetic world) or self-supervised (video).
 
-Config (``cfg.model``, see ``conf/model/flow_supervised.yaml`` / ``flow_self.yaml``):
-    task: "flow"; mode: "supervised" | "self"; variant: "default" | "small" | "tiny"; lr; lr_milestones (epochs)
-    and lr_gamma; loss.{alpha, w_smooth, w_consistency, occlusion}; init_from (checkpoint to start from:
-    a Lightning ``.ckpt`` of this module or a ``.safetensors`` / ``.pt`` state dict of the FlowNet);
-    log_images_every (steps).
+Config: ``cfg.model``, a :class:`dfvo.training.config.FlowModelConfig` (``model=flow_supervised|flow_self``; the
+fields and their defaults are documented there). ``model.init_from`` starts from a Lightning ``.ckpt`` of this module
+or a ``.safetensors`` / ``.pt`` state dict of the FlowNet (e.g. a run's ``weights.safetensors``).
 
 Batches use the sample keys of :mod:`dfvo.data`:
     supervised: ``image``, ``image_next``, ``flow_fwd``, ``flow_bwd``, ``flow_fwd_valid``, ``flow_bwd_valid``.
@@ -24,15 +22,9 @@ from omegaconf import DictConfig, OmegaConf
 from dfvo.io.checkpoint import load_weights
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe, occlusion_mask, self_supervised_flow_loss
 from dfvo.models.flow_net import FlowNet
+from dfvo.training.config import FlowModelConfig, typed
 from dfvo.training.flow_viz import flow_to_color, scalar_to_color
 from dfvo.training.hparams import recorded_config
-
-MODES = ("supervised", "self")
-
-
-def _get(cfg: Any, key: str, default: Any) -> Any:
-    value = OmegaConf.select(cfg, key, default=default) if isinstance(cfg, DictConfig) else default
-    return default if value is None else value
 
 
 def load_flow_weights(net: FlowNet, path: str | Path, setting: str = "model.init_from") -> None:
@@ -44,30 +36,32 @@ def load_flow_weights(net: FlowNet, path: str | Path, setting: str = "model.init
 class FlowModule(L.LightningModule):
     """Train :class:`dfvo.models.flow_net.FlowNet` (task ``"flow"`` of ``dfvo.training.runner``).
 
+    ``FlowModule.load_from_checkpoint(path)`` rebuilds the module from the config stored in the checkpoint.
+
     Args:
-        cfg: the full training config (``cfg.model`` as described in the module docstring).
+        cfg: the training config (its ``model`` node is a :class:`~dfvo.training.config.FlowModelConfig`), a
+            DictConfig or the plain dict stored in a checkpoint.
     """
 
-    def __init__(self, cfg: DictConfig) -> None:
+    def __init__(self, cfg: DictConfig | dict, **_: Any) -> None:
         super().__init__()
-        model_cfg = cfg.model if isinstance(cfg, DictConfig) and "model" in cfg else cfg
-        self.mode = str(_get(model_cfg, "mode", "supervised"))
-        if self.mode not in MODES:
-            raise ValueError(f"model.mode: expected one of {MODES}, got {self.mode!r}")
-        self.lr = float(_get(model_cfg, "lr", 1e-4))
-        self.lr_milestones = list(_get(model_cfg, "lr_milestones", [15]))
-        self.lr_gamma = float(_get(model_cfg, "lr_gamma", 0.1))
-        self.alpha = float(_get(model_cfg, "loss.alpha", 0.85))
-        self.w_smooth = float(_get(model_cfg, "loss.w_smooth", 0.1))
-        self.w_consistency = float(_get(model_cfg, "loss.w_consistency", 5e-3))
-        self.occlusion = bool(_get(model_cfg, "loss.occlusion", True))
-        self.log_images_every = int(_get(model_cfg, "log_images_every", 200))
-        self.net = FlowNet(str(_get(model_cfg, "variant", "small")))
-        init_from = _get(model_cfg, "init_from", None)
-        if init_from:
-            load_flow_weights(self.net, init_from)
-        if isinstance(cfg, DictConfig):
-            self.save_hyperparameters({"cfg": recorded_config(cfg)})
+        cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)  # dict: from load_from_checkpoint
+        m: FlowModelConfig = typed(cfg.model, FlowModelConfig, "model")
+        self.model_cfg = m
+        self.mode = m.mode.value
+        self.lr, self.lr_milestones, self.lr_gamma = m.lr, list(m.lr_milestones), m.lr_gamma
+        self.alpha, self.w_smooth = m.loss.alpha, m.loss.w_smooth
+        self.w_consistency, self.occlusion = m.loss.w_consistency, m.loss.occlusion
+        self.log_images_every = m.log_images_every
+        self.net = FlowNet(m.variant)
+        if m.init_from:
+            load_flow_weights(self.net, m.init_from)
+        self.save_hyperparameters({"cfg": recorded_config(cfg)})
+
+    def export_network(self) -> tuple[torch.nn.Module, dict[str, str]]:
+        """The network inference loads and the metadata describing it (see
+        :func:`dfvo.training.export.export_weights`)."""
+        return self.net, {"task": "flow", "variant": self.model_cfg.variant}
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Forward and backward flow (B,2,H,W) of a pair of (B,3,H,W) images."""

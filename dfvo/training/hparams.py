@@ -16,8 +16,9 @@ __all__ = ["recorded_config"]
 
 
 def recorded_config(cfg: DictConfig) -> dict[str, Any]:
-    """``cfg`` as a plain dict with ``model.init_from`` moved to ``model.initialised_from``."""
-    out = OmegaConf.to_container(cfg, resolve=True)
+    """``cfg`` as a plain dict of strings, numbers, lists and dicts (enums as their values, so a weights-only reader
+    can open the checkpoint) with ``model.init_from`` moved to ``model.initialised_from``."""
+    out = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
     model = out.get("model") if isinstance(out, dict) else None
     if isinstance(model, dict) and model.get("init_from"):
         model["initialised_from"] = model["init_from"]

@@ -1,108 +1,56 @@
-"""Training entry: build the LightningModule of ``cfg.model.task``, the datamodule and the Trainer, and fit.
+"""Training entry: build the LightningModule named by ``cfg.model._target_``, the datamodule and the Trainer, and fit.
 
-Registry: ``"depth" -> dfvo.training.depth_module.DepthPoseModule``, ``"flow" -> dfvo.training.flow_module.FlowModule``
-(imported lazily; each built as ``Module(cfg)``). Outputs go to ``runs/<name>/``: ``checkpoints/last.ckpt`` and
-``best-*.ckpt`` (monitored metric from ``cfg.model.monitor``), TensorBoard logs under ``runs/<name>/tb``.
-``ckpt_path=...`` resumes exactly (weights, optimiser, scheduler, step, data position: the stateful train loader of
-:mod:`dfvo.training.datamodule` skips the batches of the epoch already trained, also from a checkpoint written
-mid-epoch, e.g. by a run stopped by ``trainer.max_steps``). Checkpoints record the task and model name; resuming
-from a checkpoint of another model type stops with an error before training.
+The model node's ``_target_`` (``dfvo.training.depth_module.DepthPoseModule`` for the depth schema,
+``dfvo.training.flow_module.FlowModule`` for the flow schema) is imported and built as ``Module(cfg)`` with the whole
+typed config. Outputs go to ``runs_dir/name/``: ``checkpoints/last.ckpt`` (resumable) and ``best-*.ckpt`` (the
+metric ``cfg.model.monitor``), ``weights.safetensors`` (the network inference loads, fp16, refreshed with last.ckpt;
+:mod:`dfvo.training.export`), ``config.yaml``, TensorBoard logs under ``tb/``. ``ckpt_path=...`` resumes exactly
+(weights, optimiser, scheduler, step, data position, also from a checkpoint written mid-epoch, e.g. by a run
+stopped by ``trainer.max_steps``). Checkpoints record the model identity ``task:name``; resuming from a checkpoint
+of another model type stops with an error before training.
 """
 
 from __future__ import annotations
 
-import importlib
+import logging
 import math
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
+from hydra.utils import get_class
 from lightning.pytorch.callbacks import Callback, LearningRateMonitor, ModelCheckpoint, TQDMProgressBar
 from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
-from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, load_training_checkpoint
+from dfvo.io.checkpoint import load_training_checkpoint
+from dfvo.training.callbacks import ChannelsLast, LoggedStepAfterResume, ModelIdentity, NaNGuard, ValidateAtStop
+from dfvo.training.config import TrainerConfig, data_config, model_config, typed
 from dfvo.training.datamodule import DFVODataModule
+from dfvo.training.export import WEIGHTS_NAME, LastCheckpoint
 
-MODULES: dict[str, str] = {
-    "depth": "dfvo.training.depth_module:DepthPoseModule",
-    "flow": "dfvo.training.flow_module:FlowModule",
-}
-REPO_ROOT = Path(__file__).resolve().parents[2]
-if not OmegaConf.has_resolver("dfvo_repo"):
-    # ${dfvo_repo:} in the configs: the repository root, so data roots default to <repo>/../shared/data/...
-    OmegaConf.register_new_resolver("dfvo_repo", lambda: str(REPO_ROOT))
+__all__ = ["model_identity", "build_module", "check_checkpoint", "build_trainer", "run_training", "NaNGuard"]
 
-
-def _get(cfg: Any, key: str, default: Any) -> Any:
-    value = OmegaConf.select(cfg, key, default=default)
-    return default if value is None else value
+log = logging.getLogger("dfvo.training")
 
 
 def model_identity(cfg: DictConfig) -> str:
     """``"<task>:<name>"`` of ``cfg.model``, e.g. ``"depth:depth_stereo"``; stored in every checkpoint."""
-    name = _get(cfg, "model.name", None) or _get(cfg, "model.mode", "?")
-    return f"{_get(cfg, 'model.task', '?')}:{name}"
+    return f"{cfg.model.task}:{cfg.model.name}"
 
 
 def build_module(cfg: DictConfig) -> L.LightningModule:
-    """The LightningModule registered for ``cfg.model.task``."""
-    task = _get(cfg, "model.task", None)
-    if task not in MODULES:
-        raise ValueError(f"model.task: expected one of {sorted(MODULES)}, got {task!r}")
-    module_name, cls_name = MODULES[task].split(":")
-    return getattr(importlib.import_module(module_name), cls_name)(cfg)
-
-
-class NaNGuard(Callback):
-    """Stop training with a clear message when the training loss is not finite."""
-
-    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
-                           batch_idx: int) -> None:
-        loss = outputs["loss"] if isinstance(outputs, dict) else outputs
-        if loss is not None and not torch.isfinite(torch.as_tensor(loss)).all():
-            raise FloatingPointError(
-                f"training loss is {float(loss)} at step {trainer.global_step} (epoch {trainer.current_epoch}, "
-                f"batch {batch_idx}); stopped. Resume from the last checkpoint with a lower model.lr, or check "
-                "the data (images in [0,1], valid intrinsics).")
-
-
-class ModelIdentity(Callback):
-    """Write the model identity into every checkpoint."""
-
-    def __init__(self, identity: str) -> None:
-        self.identity = identity
-
-    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
-        checkpoint[MODEL_IDENTITY_KEY] = self.identity
-
-
-class LoggedStepAfterResume(Callback):
-    """Make a resumed run log its first (and so every later) point at ``global_step``, as an uninterrupted run.
-
-    Lightning 2.6 restores its logging step (``fit_loop.epoch_loop._batches_that_stepped``) one too high when the
-    checkpoint was written at the end of an epoch (for example when ``trainer.max_steps`` stopped the run on an
-    epoch's last batch), so every point of the resumed run is logged one step late. Without gradient accumulation,
-    and with one optimiser step per batch, the logging step of a batch is its ``global_step``; at the first batch
-    after a resume this callback sets it back when the two differ.
-    """
-
-    def __init__(self) -> None:
-        self._resumed = False
-
-    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self._resumed = trainer.ckpt_path is not None
-
-    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
-                             batch_idx: int) -> None:
-        if not self._resumed:
-            return
-        self._resumed = False
-        epoch_loop = trainer.fit_loop.epoch_loop
-        if (pl_module.automatic_optimization and trainer.accumulate_grad_batches == 1
-                and getattr(epoch_loop, "_batches_that_stepped", None) not in (None, trainer.global_step)):
-            epoch_loop._batches_that_stepped = trainer.global_step
+    """The LightningModule ``cfg.model._target_``, built from the whole config (checked against its schema)."""
+    model_config(cfg)  # one-line errors for bad model settings before anything is built
+    target = str(cfg.model._target_)
+    try:
+        cls = get_class(target)
+    except Exception as err:  # hydra raises ImportError or ValueError with a long chain
+        raise ValueError(f"model._target_={target!r}: cannot be imported ({type(err).__name__})") from err
+    if not (isinstance(cls, type) and issubclass(cls, L.LightningModule)):
+        raise ValueError(f"model._target_={target!r} is not a LightningModule class")
+    return cls(cfg)
 
 
 def check_checkpoint(path: str | Path, cfg: DictConfig) -> None:
@@ -111,71 +59,92 @@ def check_checkpoint(path: str | Path, cfg: DictConfig) -> None:
     load_training_checkpoint(path, "ckpt_path", identity=model_identity(cfg))
 
 
-def build_trainer(cfg: DictConfig, run_dir: Path) -> L.Trainer:
-    """Trainer with checkpoints (last + best), LR monitor, progress bar, TensorBoard and the NaN guard."""
-    t = cfg.trainer
-    monitor = _get(cfg, "model.monitor", None)
-    mode = str(_get(cfg, "model.monitor_mode", "min"))
-    # "last" has its own callback: Lightning 2.6's save_last only rewrites last.ckpt when a top-k file was saved
+def _check_accelerator(t: TrainerConfig) -> None:
+    if str(t.accelerator).lower() in ("gpu", "cuda") and not torch.cuda.is_available():
+        raise ValueError(f"trainer.accelerator={t.accelerator} needs a CUDA GPU and torch sees none; use "
+                         "trainer=default (accelerator auto: CPU here)")
+
+
+def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True) -> L.Trainer:
+    """Trainer with checkpoints (last + weights export, best), LR monitor, progress bar, TensorBoard, the NaN guard,
+    validation at a ``max_steps`` stop and the channels-last layout, as ``cfg.trainer`` says.
+
+    Args:
+        cfg: the training config. run_dir: the run folder.
+        has_validation: whether the data gives validation batches (without, there is no ``best`` checkpoint: its
+            metric would never exist).
+    """
+    t: TrainerConfig = typed(cfg.trainer, TrainerConfig, "trainer")
+    _check_accelerator(t)
+    if t.float32_matmul_precision:
+        torch.set_float32_matmul_precision(t.float32_matmul_precision)
+    model = model_config(cfg)
+    data = data_config(cfg)
+    identity = model_identity(cfg)
+    weights = run_dir / WEIGHTS_NAME if t.export_weights else None
     callbacks: list[Callback] = [
-        ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="last", monitor=None, save_top_k=1,
-                        enable_version_counter=False),
-        NaNGuard(), ModelIdentity(model_identity(cfg)), LoggedStepAfterResume(),
+        LastCheckpoint(run_dir / "checkpoints", weights, size=(data.height, data.width), identity=identity),
+        NaNGuard(), ModelIdentity(identity), LoggedStepAfterResume(),
     ]
-    if monitor:
+    if model.monitor and has_validation:
         callbacks.append(ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best-{epoch}-{step}",
-                                         monitor=monitor, mode=mode, save_top_k=1))
-    if bool(_get(t, "enable_progress_bar", True)):
-        callbacks.append(TQDMProgressBar(refresh_rate=int(_get(t, "progress_refresh", 10))))
+                                         monitor=model.monitor, mode=model.monitor_mode.value, save_top_k=1))
+    elif model.monitor:
+        log.warning("model.monitor=%s: data=%s gives no validation data (data.val_seeds=[] and no data.val_split), "
+                    "so there is no best checkpoint; last.ckpt is written as usual", model.monitor, data.name)
+    if t.validate_at_stop:
+        callbacks.append(ValidateAtStop())
+    if t.channels_last:
+        callbacks.append(ChannelsLast())
+    if t.enable_progress_bar:
+        callbacks.append(TQDMProgressBar(refresh_rate=t.progress_refresh))
     logger: Any = False
-    if bool(_get(t, "logger", True)):
+    if t.logger:
         logger = TensorBoardLogger(save_dir=str(run_dir), name="tb", version="")
         callbacks.append(LearningRateMonitor(logging_interval="step"))
-    kwargs: dict[str, Any] = dict(
-        accelerator=str(_get(t, "accelerator", "auto")), devices=_get(t, "devices", "auto"),
-        strategy=str(_get(t, "strategy", "auto")), num_nodes=int(_get(t, "num_nodes", 1)),
-        max_epochs=int(_get(t, "max_epochs", 20)), max_steps=int(_get(t, "max_steps", -1)),
-        log_every_n_steps=int(_get(t, "log_every_n_steps", 10)),
-        check_val_every_n_epoch=int(_get(t, "check_val_every_n_epoch", 1)),
-        limit_train_batches=_get(t, "limit_train_batches", None),
-        limit_val_batches=_get(t, "limit_val_batches", None),
-        num_sanity_val_steps=int(_get(t, "num_sanity_val_steps", 0)),
-        precision=_get(t, "precision", "32-true"), deterministic=bool(_get(t, "deterministic", False)),
-        gradient_clip_val=_get(t, "gradient_clip_val", None),
-        enable_progress_bar=bool(_get(t, "enable_progress_bar", True)),
-        default_root_dir=str(run_dir), callbacks=callbacks, logger=logger,
+    return L.Trainer(
+        accelerator=t.accelerator, devices=t.devices, strategy=t.strategy, num_nodes=t.num_nodes,
+        max_epochs=t.max_epochs, max_steps=t.max_steps, log_every_n_steps=t.log_every_n_steps,
+        check_val_every_n_epoch=t.check_val_every_n_epoch, limit_train_batches=t.limit_train_batches,
+        limit_val_batches=t.limit_val_batches, num_sanity_val_steps=t.num_sanity_val_steps, precision=t.precision,
+        deterministic=t.deterministic, gradient_clip_val=t.gradient_clip_val, benchmark=t.benchmark,
+        enable_progress_bar=t.enable_progress_bar, default_root_dir=str(run_dir), callbacks=callbacks,
+        logger=logger,
         # the datamodule shards with its own resumable sampler; Lightning must not wrap it in a DistributedSampler
         use_distributed_sampler=False,
     )
-    return L.Trainer(**kwargs)
 
 
 def run_training(cfg: DictConfig) -> dict[str, Any]:
-    """Train as ``cfg`` says; return the run directory, checkpoint paths and the last logged metrics.
+    """Train as ``cfg`` says; return the run folder, checkpoint and weights paths, the step and the last metrics.
 
     Args:
-        cfg: composed config with groups ``model`` (task, name, ...), ``data``, ``trainer`` and top-level
-            ``name`` (run name), ``runs_dir``, ``seed``, ``ckpt_path`` (resume) and ``threads``.
+        cfg: the composed training config (:class:`dfvo.training.config.TrainConfig`: groups ``model``, ``data``,
+            ``trainer`` and ``name``, ``runs_dir``, ``seed``, ``ckpt_path``, ``threads``).
+
+    Returns:
+        ``run_dir``, ``last_ckpt``, ``best_ckpt`` (``last_ckpt`` when there is no best), ``weights`` (the exported
+        ``weights.safetensors`` or None), ``global_step``, ``metrics`` (finite scalars), ``module``.
     """
-    threads = int(_get(cfg, "threads", 0))
-    if threads > 0:
-        torch.set_num_threads(threads)
-    L.seed_everything(int(_get(cfg, "seed", 0)), workers=True)
-    run_dir = Path(str(_get(cfg, "runs_dir", "runs"))) / str(_get(cfg, "name", model_identity(cfg).replace(":", "_")))
+    if cfg.threads > 0:
+        torch.set_num_threads(int(cfg.threads))
+    L.seed_everything(int(cfg.seed), workers=True)
+    run_dir = Path(str(cfg.runs_dir)) / str(cfg.name)
     run_dir.mkdir(parents=True, exist_ok=True)
-    ckpt_path = _get(cfg, "ckpt_path", None)
-    if ckpt_path:
-        check_checkpoint(ckpt_path, cfg)
+    if cfg.ckpt_path:
+        check_checkpoint(cfg.ckpt_path, cfg)
     datamodule = DFVODataModule(cfg)  # checks the data fits the model (e.g. supervised flow needs true flow)
     module = build_module(cfg)
-    trainer = build_trainer(cfg, run_dir)
+    trainer = build_trainer(cfg, run_dir, has_validation=datamodule.has_validation)
     if trainer.is_global_zero:
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_path) if ckpt_path else None)
-    ckpts = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint)]
-    last = ckpts[0].best_model_path
-    best = ckpts[1].best_model_path if len(ckpts) > 1 and ckpts[1].best_model_path else last
+    trainer.fit(module, datamodule=datamodule, ckpt_path=str(cfg.ckpt_path) if cfg.ckpt_path else None)
+    last_cb = next(c for c in trainer.callbacks if isinstance(c, LastCheckpoint))
+    best_cb = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and not isinstance(c, LastCheckpoint)]
+    last = last_cb.best_model_path
+    best = best_cb[0].best_model_path if best_cb and best_cb[0].best_model_path else last
+    weights = last_cb.weights_path if last_cb.weights_path is not None and last_cb.weights_path.is_file() else None
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()
                if torch.as_tensor(v).numel() == 1 and math.isfinite(float(v))}
-    return {"run_dir": str(run_dir), "last_ckpt": last, "best_ckpt": best,
+    return {"run_dir": str(run_dir), "last_ckpt": last, "best_ckpt": best, "weights": str(weights) if weights else None,
             "global_step": trainer.global_step, "metrics": metrics, "module": module}

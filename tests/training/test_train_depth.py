@@ -42,6 +42,12 @@ def test_synthetic_few_steps(tmp_path: Path) -> None:
     ckpt = torch.load(out["last_ckpt"], map_location="cpu", weights_only=False)
     assert ckpt[MODEL_IDENTITY_KEY] == "depth:depth_mono_sc"
     assert list((tmp_path / "syn" / "tb").glob("events.out.tfevents.*"))
+    # the weights-only export follows last.ckpt: written at every save, so it holds the last step's DepthNet
+    from safetensors import safe_open
+    with safe_open(out["weights"], framework="pt") as f:
+        meta = f.metadata()
+        assert meta["global_step"] == "2" and meta["dfvo_model"] == "depth:depth_mono_sc"
+        assert f.get_tensor("encoder.conv1.weight").dtype == torch.float16
     from dfvo.training.depth_module import DepthPoseModule
     loaded = DepthPoseModule.load_from_checkpoint(out["last_ckpt"], map_location="cpu").eval()
     x = torch.rand(1, 3, 64, 128)
@@ -128,7 +134,7 @@ def test_bad_data_root_names_the_path(tmp_path: Path) -> None:
 
 
 def test_unknown_task_and_missing_keys(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="model.task"):
+    with pytest.raises(ValueError, match="model.task='segmentation'; expected one of"):
         run_training(_cfg(tmp_path, "model.task=segmentation"))
     from dfvo.training.depth_module import DepthPoseModule
     module = DepthPoseModule(_cfg(tmp_path, "model=depth_stereo"))

@@ -57,8 +57,8 @@ def test_short_supervised_run_recovers_a_translation() -> None:
 
 
 def _cfg(mode: str, tmp_path: Path, init_from: str | None = None):
-    return OmegaConf.create({"model": {"task": "flow", "mode": mode, "variant": "tiny", "lr": 1e-3,
-                                       "lr_milestones": [15], "lr_gamma": 0.1, "init_from": init_from,
+    return OmegaConf.create({"model": {"task": "flow", "name": f"flow_{mode}", "mode": mode, "variant": "tiny",
+                                       "lr": 1e-3, "lr_milestones": [15], "lr_gamma": 0.1, "init_from": init_from,
                                        "log_images_every": 1,
                                        "loss": {"alpha": 0.85, "w_smooth": 0.1, "w_consistency": 5e-3,
                                                 "occlusion": True}}})
@@ -84,6 +84,11 @@ def test_flow_module_trains_and_logs_images(mode: str, tmp_path: Path) -> None:
     reloaded = FlowModule(_cfg("self", tmp_path, init_from=str(ckpt)))
     for a, b in zip(reloaded.net.parameters(), module.net.parameters()):
         torch.testing.assert_close(a, b)
+    # the module rebuilt from the config stored in the checkpoint: same mode, variant and weights
+    rebuilt = FlowModule.load_from_checkpoint(ckpt, map_location="cpu")
+    assert rebuilt.mode == mode and rebuilt.model_cfg.variant == "tiny" and rebuilt.model_cfg.lr == 1e-3
+    for a, b in zip(rebuilt.net.parameters(), module.net.parameters()):
+        assert torch.equal(a, b)
 
 
 def test_load_flow_weights_errors(tmp_path: Path) -> None:
@@ -137,9 +142,10 @@ def test_train_py_flow_supervised(tmp_path: Path) -> None:
 
 
 def test_train_py_flow_self_on_kitti_raw(tmp_path: Path, kitti_raw_root: Path) -> None:
-    """`python train.py model=flow_self data=kitti_raw` on ../shared/data/kitti_raw with tiny settings."""
+    """`python train.py model=flow_self data=kitti_raw data.frame_skips=[1,2,3]` on ../shared/data/kitti_raw with tiny
+    settings (2 shuffled steps over the snippets of every gap)."""
     _train(tmp_path, "model=flow_self", "data=kitti_raw", f"data.root={kitti_raw_root.parent}", "data.height=64",
-           "data.width=192", "data.max_train_samples=4", "data.batch_size=2")
+           "data.width=192", "data.batch_size=2", "data.frame_skips=[1,2,3]")
     assert (tmp_path / "flow_self_kitti_raw" / "checkpoints" / "last.ckpt").is_file()
 
 

@@ -1,0 +1,102 @@
+"""Callbacks of a training run: NaN stop, model identity in checkpoints, logging step after a resume, validation at
+a ``max_steps`` stop, and the channels-last memory layout."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import lightning as L
+import torch
+from lightning.pytorch.callbacks import Callback
+
+from dfvo.io.checkpoint import MODEL_IDENTITY_KEY
+
+__all__ = ["NaNGuard", "ModelIdentity", "LoggedStepAfterResume", "ValidateAtStop", "ChannelsLast"]
+
+
+class NaNGuard(Callback):
+    """Stop training with a clear message when the training loss is not finite."""
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        loss = outputs["loss"] if isinstance(outputs, dict) else outputs
+        if loss is not None and not torch.isfinite(torch.as_tensor(loss)).all():
+            raise FloatingPointError(
+                f"training loss is {float(loss)} at step {trainer.global_step} (epoch {trainer.current_epoch}, "
+                f"batch {batch_idx}); stopped. Resume from the last checkpoint with a lower model.lr, or check "
+                "the data (images in [0,1], valid intrinsics).")
+
+
+class ModelIdentity(Callback):
+    """Write the model identity into every checkpoint."""
+
+    def __init__(self, identity: str) -> None:
+        self.identity = identity
+
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict) -> None:
+        checkpoint[MODEL_IDENTITY_KEY] = self.identity
+
+
+class LoggedStepAfterResume(Callback):
+    """Make a resumed run log its first (and so every later) point at ``global_step``, as an uninterrupted run.
+
+    Lightning 2.6 restores its logging step (``fit_loop.epoch_loop._batches_that_stepped``) one too high when the
+    checkpoint was written at the end of an epoch (for example when ``trainer.max_steps`` stopped the run on an
+    epoch's last batch), so every point of the resumed run is logged one step late. Without gradient accumulation,
+    and with one optimiser step per batch, the logging step of a batch is its ``global_step``; at the first batch
+    after a resume this callback sets it back when the two differ.
+    """
+
+    def __init__(self) -> None:
+        self._resumed = False
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._resumed = trainer.ckpt_path is not None
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
+                             batch_idx: int) -> None:
+        if not self._resumed:
+            return
+        self._resumed = False
+        epoch_loop = trainer.fit_loop.epoch_loop
+        if (pl_module.automatic_optimization and trainer.accumulate_grad_batches == 1
+                and getattr(epoch_loop, "_batches_that_stepped", None) not in (None, trainer.global_step)):
+            epoch_loop._batches_that_stepped = trainer.global_step
+
+class ValidateAtStop(Callback):
+    """Validate the last step of a run that ``trainer.max_steps`` stops, also mid-epoch.
+
+    Lightning validates at the end of an epoch; a run stopped by ``max_steps`` before that never validates, so the
+    ``best`` checkpoint's monitored metric (e.g. ``val/abs_rel``) does not exist. At the batch that reaches
+    ``max_steps`` this callback requests the stop itself (``trainer.should_stop``), and Lightning runs the validation
+    loop before stopping (as for early stopping); the checkpoints written at the end then see the metric.
+    """
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        if 0 < trainer.max_steps <= trainer.global_step:
+            trainer.should_stop = True
+
+
+def to_channels_last(batch: Any) -> None:
+    """Make the 4-D floating tensors of a batch dict (images, flows, depths: (B,C,H,W)) channels-last, in place."""
+    if isinstance(batch, dict):
+        for key, value in batch.items():
+            if isinstance(value, torch.Tensor) and value.dim() == 4 and value.is_floating_point():
+                batch[key] = value.contiguous(memory_format=torch.channels_last)
+
+
+class ChannelsLast(Callback):
+    """NHWC (channels-last) memory layout for the module's 4-D weights (convolutions) and the batches' images, which
+    lets cuDNN's NHWC kernels run under mixed precision (``trainer.channels_last``). The values are unchanged."""
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        pl_module.to(memory_format=torch.channels_last)
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
+                             batch_idx: int) -> None:
+        to_channels_last(batch)
+
+    def on_validation_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
+                                  batch_idx: int, dataloader_idx: int = 0) -> None:
+        to_channels_last(batch)

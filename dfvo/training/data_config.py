@@ -1,0 +1,238 @@
+"""Typed configuration of the training data (``data=KIND`` of ``dfvo/conf/train/data/``): one schema per kind.
+
+Each ``data/KIND.yaml`` is ``defaults: [schema/KIND@_here_, _self_]`` plus what differs; the schemas here hold every
+field and default (registered by :func:`dfvo.training.config.register_configs`). Dataset roots are never derived from
+the repository layout: ``data.root=`` or the kind's environment variable (:attr:`DataConfig.ROOT_ENV`, e.g.
+``DFVO_KITTI_RAW_ROOT``), resolved by :func:`data_root` when the data is built.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import ClassVar
+
+from omegaconf import MISSING
+
+__all__ = ["CropMode", "DataConfig", "WorldsDataConfig", "SyntheticDataConfig", "KittiRawDataConfig",
+           "KittiOdomDataConfig", "KittiRawSyntheticDataConfig", "FlowPairDataConfig", "FlyingChairsDataConfig",
+           "FlyingThingsDataConfig", "SintelDataConfig", "KittiFlowDataConfig", "DATA_SCHEMAS", "data_root",
+           "positive"]
+
+
+class CropMode(StrEnum):
+    """Training crop of the flow datasets (validation is always centred)."""
+
+    random = "random"
+    center = "center"
+
+
+def positive(where: str, **values: float | None) -> None:
+    """Raise ``where.key=value; expected > 0`` for the first value that is not None and not positive."""
+    for key, value in values.items():
+        if value is not None and not value > 0:
+            raise ValueError(f"{where}.{key}={value}; expected > 0")
+
+
+@dataclass
+class DataConfig:
+    """Fields of every training dataset.
+
+    Attributes:
+        name: the dataset kind (a key of :data:`DATA_SCHEMAS`; set by its schema).
+        height, width: working size the frames are resized to (flow pair datasets: the crop).
+        batch_size: samples per batch (per process under DDP; on a GPU raise it, e.g. ``data.batch_size=16``).
+        num_workers: DataLoader worker processes. seed: shuffling (and augmentation) seed.
+        max_train_samples: train on the first N samples only (null: all).
+        val_seeds, val_num_frames, val_every: validation on synthetic worlds (true depth and flow; every
+            ``val_every``-th sample); ``val_seeds: []``: no synthetic validation.
+    """
+
+    ROOT_ENV: ClassVar[str | None] = None  # environment variable giving the root once for all commands
+
+    name: str = MISSING
+    height: int | None = 192
+    width: int | None = 640
+    batch_size: int = 4
+    num_workers: int = 0
+    seed: int = 0
+    max_train_samples: int | None = None
+    val_seeds: list[int] = field(default_factory=lambda: [1000])
+    val_num_frames: int = 12
+    val_every: int = 1
+
+    def __post_init__(self) -> None:
+        expected = next((k for k, v in DATA_SCHEMAS.items() if v is type(self)), None)
+        if expected is not None and self.name != expected:
+            raise ValueError(f"data.name={self.name!r}; the {type(self).__name__} schema is data={expected}")
+        positive("data", height=self.height, width=self.width, batch_size=self.batch_size,
+                  val_every=self.val_every, max_train_samples=self.max_train_samples)
+        if self.num_workers < 0:
+            raise ValueError(f"data.num_workers={self.num_workers}; expected >= 0")
+        skips = getattr(self, "frame_skips", None)
+        if skips is not None and (not skips or min(skips) < 1):
+            raise ValueError(f"data.frame_skips={list(skips)}; expected a non-empty list of gaps >= 1 (e.g. [1, 2, 3])")
+
+
+@dataclass
+class WorldsDataConfig(DataConfig):
+    """Synthetic training worlds (:mod:`dfvo.data.synthetic`): ``seeds`` (one world each, below 1000: seeds >= 1000
+    are held-out evaluation worlds), ``num_frames`` each, ``scenario`` (names; seed s gets ``scenario[s % len]``),
+    ``speed``/``turn_rate`` (null: the scenario's; ``[v]`` or a range ``[lo, hi]`` drawn per world), ``device``
+    (``cuda``: render on the GPU, with ``num_workers: 0``), ``frame_skips`` (depth: snippets (k-s, k, k+s); flow:
+    pairs (k, k+s), every s of the list)."""
+
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3])
+    num_frames: int = 50
+    scenario: list[str] = field(default_factory=lambda: ["drive"])
+    speed: list[float] | None = None
+    turn_rate: list[float] | None = None
+    device: str = "cpu"
+    frame_skips: list[int] = field(default_factory=lambda: [1])
+
+
+@dataclass
+class SyntheticDataConfig(WorldsDataConfig):
+    """``data=synthetic``: the synthetic driving world (exact depth, flow and poses)."""
+
+    name: str = "synthetic"
+
+
+@dataclass
+class KittiRawDataConfig(DataConfig):
+    """``data=kitti_raw``: KITTI raw drives ``ROOT/DATE/DATE_drive_XXXX_sync`` (colour stereo) as snippets
+    (i-s, i, i+s) for every s of ``frame_skips``; ``drives`` null: every drive under the root. Validation on the
+    synthetic worlds (true depth)."""
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
+
+    name: str = "kitti_raw"
+    root: str | None = None
+    drives: list[str] | None = None
+    frame_skips: list[int] = field(default_factory=lambda: [1])
+
+
+@dataclass
+class KittiOdomDataConfig(DataConfig):
+    """``data=kitti_odom``: KITTI odometry ``ROOT/sequences/SEQ`` as snippets (i-s, i, i+s) (+ stereo when the right
+    images exist)."""
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_ODOM_ROOT"
+
+    name: str = "kitti_odom"
+    root: str | None = None
+    sequences: list[str] = field(default_factory=lambda: ["06"])
+    frame_skips: list[int] = field(default_factory=lambda: [1])
+
+
+@dataclass
+class KittiRawSyntheticDataConfig(WorldsDataConfig):
+    """``data=kitti_raw_synthetic``: KITTI raw drives and synthetic worlds in one training set (``frame_skips``
+    applies to both)."""
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
+
+    name: str = "kitti_raw_synthetic"
+    root: str | None = None
+    drives: list[str] | None = None
+
+
+@dataclass
+class FlowPairDataConfig(DataConfig):
+    """Frame pairs with true flow (:mod:`dfvo.data.flow_datasets`): ``height``/``width`` the crop (both null: no
+    crop), ``resize`` ``[h, w]`` before cropping (flow vectors scaled; null: native size), ``crop`` for training,
+    ``train_split``, ``val_split`` (the dataset's own validation pairs, centre crop; null: the synthetic worlds of
+    ``val_seeds``)."""
+
+    root: str | None = None
+    resize: list[int] | None = None
+    crop: CropMode = CropMode.random
+    train_split: str = "train"
+    val_split: str | None = None
+
+
+@dataclass
+class FlyingChairsDataConfig(FlowPairDataConfig):
+    """``data=flyingchairs``: ``ROOT/data/NNNNN_img1.ppm, _img2.ppm, _flow.flo`` and ``FlyingChairs_train_val.txt``
+    (ROOT = FlyingChairs_release). Forward flow only. FlowNet's 320x448 crops of the 384x512 images."""
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_FLYINGCHAIRS_ROOT"
+
+    name: str = "flyingchairs"
+    height: int | None = 320
+    width: int | None = 448
+    val_split: str | None = "val"
+    val_seeds: list[int] = field(default_factory=list)
+
+
+@dataclass
+class FlyingThingsDataConfig(FlowPairDataConfig):
+    """``data=flyingthings``: FlyingThings3D ``frames_cleanpass|finalpass`` and ``optical_flow`` (forward and
+    backward flow); ``dstype`` clean | final, ``cameras`` [left] / [right] / both, ``reverse`` also the reversed
+    pairs. Crops of the 540x960 frames; TEST pairs as validation."""
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_FLYINGTHINGS_ROOT"
+
+    name: str = "flyingthings"
+    dstype: str = "clean"
+    cameras: list[str] = field(default_factory=lambda: ["left"])
+    reverse: bool = False
+    height: int | None = 384
+    width: int | None = 768
+    val_split: str | None = "test"
+    val_seeds: list[int] = field(default_factory=list)
+
+
+@dataclass
+class SintelDataConfig(FlowPairDataConfig):
+    """``data=sintel``: MPI-Sintel ``training/clean|final/SCENE`` with ``training/flow``; ``scenes`` to train on
+    (null: all), ``val_scenes`` with ``val_split: val``. Forward flow only; crops of the 436x1024 frames."""
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_SINTEL_ROOT"
+
+    name: str = "sintel"
+    dstype: str = "clean"
+    scenes: list[str] | None = None
+    val_scenes: list[str] | None = None
+    height: int | None = 384
+    width: int | None = 768
+
+
+@dataclass
+class KittiFlowDataConfig(FlowPairDataConfig):
+    """``data=kitti_flow``: KITTI flow 2015 / 2012 training pairs (``ROOT`` = ``data_scene_flow/training``), sparse
+    true flow (``mask``: occ = all pixels with ground truth, noc = non-occluded), resized to the working size."""
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_FLOW_ROOT"
+
+    name: str = "kitti_flow"
+    version: int = 2015
+    mask: str = "occ"
+    resize: list[int] | None = field(default_factory=lambda: [192, 640])
+
+
+DATA_SCHEMAS: dict[str, type[DataConfig]] = {
+    "synthetic": SyntheticDataConfig,
+    "kitti_raw": KittiRawDataConfig,
+    "kitti_odom": KittiOdomDataConfig,
+    "kitti_raw_synthetic": KittiRawSyntheticDataConfig,
+    "flyingchairs": FlyingChairsDataConfig,
+    "flyingthings": FlyingThingsDataConfig,
+    "sintel": SintelDataConfig,
+    "kitti_flow": KittiFlowDataConfig,
+}
+
+
+
+def data_root(data: DataConfig) -> str:
+    """``data.root``, else the kind's environment variable; one line saying how to set it when neither is set."""
+    root = getattr(data, "root", None)
+    if root:
+        return str(root)
+    env = data.ROOT_ENV
+    value = os.environ.get(env, "") if env else ""
+    if not value:
+        how = f"set the environment variable {env}=ROOT once or pass data.root=ROOT" if env else "pass data.root=ROOT"
+        raise ValueError(f"data={data.name} needs the dataset folder: {how}")
+    return value
