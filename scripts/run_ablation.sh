@@ -7,7 +7,8 @@
 #   scripts/run_ablation.sh runs/ablation_synthetic flow=oracle depth=oracle data.num_frames=100
 #
 # The reference is infer.py's default configuration (hybrid tracker, local best-K, simple scale from both frames'
-# depths, GRIC, 640x192, refined network flow). Sweeps run in parallel through the configured Hydra launcher (joblib, 2 processes).
+# depths, GRIC, 640x192, refined network flow); flow=dis (OpenCV DIS, the classical baseline) is a row of its own.
+# Sweeps run in parallel through the configured Hydra launcher (joblib, 2 processes).
 set -euo pipefail
 if [[ $# -lt 1 ]]; then
     echo "usage: $0 OUT [infer.py overrides...]" >&2
@@ -34,5 +35,11 @@ sweep img_res img_res=full
 if [[ $ORACLE -eq 0 ]]; then                  # factors of the network flow
     sweep flow_refine flow.refine.iterations=0
     sweep online online_finetune=true
+    # the classical baseline (OpenCV DIS, medium preset): the row that says what the learned flow buys
+    if python -c "import cv2" 2>/dev/null; then
+        sweep flow_dis flow=dis
+    else
+        echo "$0: no flow=dis row: OpenCV is missing (pip install -e \".[classical]\")" >&2
+    fi
 fi
 python scripts/aggregate_ablation.py "$OUT" --reference --fallback --out "$OUT/table.md"

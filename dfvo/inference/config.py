@@ -56,13 +56,16 @@ class DataConfig:
     """Fields every dataset kind has: ``seq`` (sequence name), frames ``[start, end)`` every ``step``-th, and ground
     truth for data that has none of its own: ``gt`` (a trajectory file), ``gt_format`` (``auto``, ``kitti``,
     ``tum``, ``euroc``), ``times`` (a file of frame timestamps in seconds, one per line, to associate a timestamped
-    ``gt`` with the frames)."""
+    ``gt`` with the frames). ``camera_height``: the camera's height above the road in metres (KITTI 1.65), null:
+    unknown; when set and ``tracker.scale.camera_height`` is null the tracker uses it (the camera-height scale,
+    :mod:`dfvo.tracking.scale_fusion`): ``data.camera_height=null`` turns it off for a dataset that sets it."""
 
     kind: str = MISSING
     seq: str | None = None
     start: int | None = None
     end: int | None = None
     step: int | None = None
+    camera_height: float | None = None
 
 
 @dataclass
@@ -90,6 +93,7 @@ class KittiOdomDataConfig(DataConfig):
     kind: str = "kitti_odom"
     root: str | None = None
     camera: str = "auto"
+    camera_height: float | None = 1.65  # the KITTI cars' camera above the road
 
 
 @dataclass
@@ -99,6 +103,7 @@ class KittiRawDataConfig(DataConfig):
 
     kind: str = "kitti_raw"
     root: str | None = None
+    camera_height: float | None = 1.65  # the KITTI cars' camera above the road
 
 
 @dataclass
@@ -244,6 +249,17 @@ class InferConfig:
                              "monocular depth)")
         if int(self.batch_size) < 1:
             raise ValueError(f"batch_size={self.batch_size}; expected a positive number of frame pairs")
+        height = self.data.get("camera_height") if isinstance(self.data, DictConfig) else \
+            getattr(self.data, "camera_height", None)
+        from dfvo.inference.frames import KITTI_ODOM_SEQ
+
+        kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)
+        if kind == "synthetic" and self.seq is not None and KITTI_ODOM_SEQ.match(str(self.seq)):
+            height = KittiOdomDataConfig.camera_height  # `seq=NN` alone runs KITTI odometry (frames.resolve_data)
+        if height is not None and self.tracker.scale.camera_height is None:  # the dataset's camera height
+            if not float(height) > 0:
+                raise ValueError(f"data.camera_height={height}; expected a height in metres > 0, or null (unknown)")
+            self.tracker.scale.camera_height = float(height)
 
 
 def register_configs() -> None:

@@ -31,9 +31,22 @@ class FrameDiagnostics:
         cheirality_fraction: fraction of the selected rows in front of both cameras under E's pose.
         scale: length of the translation used (metres for metric depth).
         scale_iterations: iterations of Algorithm 2 (iterative scale only).
+        scale_cnn: the scale from CNN depth (None when it failed or E did not run).
+        scale_height: the camera-height scale (``tracker.scale.camera_height``): with ``road_plane.points=
+            triangulated`` the camera height over the road plane's height among the triangulated points; with
+            ``depth`` the CNN-depth scale divided by the network's estimated scale factor. plane_inliers: road-plane
+            inliers. camera_height_fit: the fitted camera height in metres (triangulated: at the scale used; depth:
+            the network's own road height).
+        scale_temporal: this pair's length from the three-frame relative scale (``tracker.scale.temporal``).
+        scale_predicted: the temporal filter's prediction before this frame's observations. cnn_bias: the
+            estimated scale factor of the depth network (with the camera height).
+        scale_source: what the E-tracker's scale came from (``cnn``, ``height``, ``temporal``, ``+``-joined, or
+            ``prediction`` when every observation failed), with rejected observations after ``|rejected:``.
+        gate_rejected: a plausibility gate rejected a tracker's result on this frame (reason in fallback_reason).
         pnp_success: PnP's result (None when PnP did not run).
         selection_failed: too few consistent correspondences (constant motion).
-        fallback_reason: why the E-tracker's result was not used (None when it was).
+        fallback_reason: why the E-tracker's result was not used (None when it was), including the plausibility gates'
+            reasons; on an E frame whose scale is the temporal filter's prediction, why.
         time_selection, time_e_tracker, time_sequential: seconds spent on this frame by each tracker stage.
     """
 
@@ -46,6 +59,15 @@ class FrameDiagnostics:
     cheirality_fraction: float | None = None
     scale: float | None = None
     scale_iterations: int | None = None
+    scale_cnn: float | None = None
+    scale_height: float | None = None
+    plane_inliers: int | None = None
+    camera_height_fit: float | None = None
+    scale_temporal: float | None = None
+    scale_predicted: float | None = None
+    cnn_bias: float | None = None
+    scale_source: str | None = None
+    gate_rejected: bool = False
     pnp_success: bool | None = None
     selection_failed: bool = False
     fallback_reason: str | None = None

@@ -12,9 +12,19 @@ Fallback order per frame (paper): (1) correspondence selection fails -> constant
 fails -> PnP (tracker="hybrid"; tracker="e" falls back to constant motion); (3) otherwise R from E and
 ``t = s * t_unit``. When PnP itself fails the frame also uses constant motion (the official code used identity).
 
+Our additions, each one switch away from the paper: the scale ``s`` may fuse the CNN-depth scale with the
+camera-height prior and, over time, the three-frame relative scale (:mod:`dfvo.tracking.scale_fusion`;
+``tracker.scale.camera_height``, ``tracker.scale.temporal``); with the temporal filter a frame whose scale
+observations all fail keeps the filter's prediction (``scale_source="prediction"``) instead of going to PnP. The
+plausibility gates (:mod:`dfvo.tracking.gates`, ``tracker.gate.enabled``) reject an E or PnP result with too few
+inliers, a translation far longer or shorter than the previous frame's, or one whose direction turns too far; E
+then falls to PnP (hybrid), PnP to constant motion, flagged in ``fallback_reason`` and ``gate_rejected``.
+
 Batched == streaming: the selection, E/H RANSAC, GRIC and simple scale run on the whole batch; frame k of the
-sequence always draws from ``torch.Generator().manual_seed(cfg.seed + k)``; the iterative scale, PnP and the
-pose composition run frame by frame in order.
+sequence always draws from ``torch.Generator().manual_seed(cfg.seed + k)``; the iterative scale, PnP, the scale
+fusion (its filter state, the previous pair's middle-frame depths, the gates' expected motion) and the pose
+composition run frame by frame in order. ``run`` is causal like ``step`` (no smoothing over the sequence), so both
+give the same poses whatever the batch size.
 """
 
 from __future__ import annotations
@@ -33,8 +43,11 @@ from dfvo.matching.selection import select_correspondences
 from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.e_tracker import essential_scale, track_essential
+from dfvo.tracking.gates import check_direction, check_length, check_support, image_parallax_px
 from dfvo.tracking.pnp_tracker import track_pnp
 from dfvo.tracking.scale import iterative_scale, sample_depth
+from dfvo.tracking.scale_filter import ScaleEstimate
+from dfvo.tracking.scale_fusion import ScaleFusion
 
 __all__ = ["FrameMatches", "FrameResult", "VisualOdometry"]
 
@@ -85,6 +98,9 @@ class VisualOdometry:
         self.T_w = torch.eye(4, dtype=torch.float64)
         self.last_motion = torch.eye(4, dtype=torch.float64)
         self.last_scale = 0.0
+        if getattr(self, "fusion", None) is None or self.fusion.cfg is not self.cfg:
+            self.fusion = ScaleFusion(self.cfg)
+        self.fusion.reset()
 
     # ------------------------------------------------------------------------------------------ public
     def step(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth_prev: torch.Tensor,
@@ -150,7 +166,8 @@ class VisualOdometry:
         results = []
         for b in range(B):
             tb = time.perf_counter()
-            res = self._finish_frame(b, corr, pi, pj, mask, depth, depth_next, Kd, e_res, scale, scale_ok, gens[b])
+            res = self._finish_frame(b, corr, pi, pj, mask, depth, depth_next, Kd, e_res, scale, scale_ok, gens[b],
+                                     flow_fwd, incon)
             res.diagnostics.time_selection = (t1 - t0) / B
             res.diagnostics.time_e_tracker = (t2 - t1) / B
             res.diagnostics.time_sequential = time.perf_counter() - tb
@@ -159,10 +176,12 @@ class VisualOdometry:
 
     def _finish_frame(self, b: int, corr: Any, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor,
                       depth: torch.Tensor, depth_next: torch.Tensor | None, K: torch.Tensor, e_res: Any,
-                      scale: torch.Tensor | None,
-                      scale_ok: torch.Tensor | None, gen: torch.Generator) -> FrameResult:
+                      scale: torch.Tensor | None, scale_ok: torch.Tensor | None, gen: torch.Generator,
+                      flow: torch.Tensor, incon: torch.Tensor) -> FrameResult:
         cfg = self.cfg
         sl = slice(b, b + 1)
+        self._estimate: ScaleEstimate | None = None  # the fused scale an E pose used
+        self._gate_overruled = False
         diag = FrameDiagnostics(frame=self.frame + 1, num_correspondences=int(mask[b].sum()),
                                 selection_failed=bool(corr.failed[b]))
         if e_res is not None:
@@ -179,9 +198,9 @@ class VisualOdometry:
             reason = e_res.reasons[b]
             if reason is None:
                 T_cur_prev, reason = self._essential_pose(b, pi, pj, mask, depth, depth_next, K, e_res, scale,
-                                                          scale_ok, gen, diag)
+                                                          scale_ok, gen, diag, flow, incon)
             if T_cur_prev is None:
-                diag.fallback_reason = reason
+                diag.add_reason(reason)
                 if cfg.mode == TrackerMode.hybrid:
                     T_cur_prev = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
         if T_cur_prev is None:
@@ -194,14 +213,21 @@ class VisualOdometry:
         self.last_scale = float(T_prev_cur[:3, 3].norm())
         self.frame += 1
         rows = mask[b]
-        inliers = e_res.inliers[b][rows] if e_res is not None and diag.tracker == TrackerUsed.essential else None
+        used_e = e_res is not None and diag.tracker == TrackerUsed.essential
+        self.fusion.end_frame(T_cur_prev, T_prev_cur, diag.tracker, self._estimate, pi[b], pj[b],
+                              rows & e_res.inliers[b] if used_e else rows, K[b])
+        gated_out = diag.gate_rejected and diag.tracker == TrackerUsed.constant_motion
+        self.fusion.rejections = self.fusion.rejections + 1 if gated_out else 0
+        if self._gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself
+            self.fusion.forget_motion()
+        inliers = e_res.inliers[b][rows] if used_e else None
         matches = FrameMatches(pi[b][rows], pj[b][rows], inliers)
         return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches)
 
     def _essential_pose(self, b: int, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
                         depth_next: torch.Tensor | None, K: torch.Tensor, e_res: Any, scale: torch.Tensor,
-                        scale_ok: torch.Tensor, gen: torch.Generator,
-                        diag: FrameDiagnostics) -> tuple[torch.Tensor | None, str | None]:
+                        scale_ok: torch.Tensor, gen: torch.Generator, diag: FrameDiagnostics, flow: torch.Tensor,
+                        incon: torch.Tensor) -> tuple[torch.Tensor | None, str | None]:
         cfg = self.cfg
         sl = slice(b, b + 1)
         R, t = e_res.R[sl], e_res.t[sl]
@@ -234,10 +260,47 @@ class VisualOdometry:
             diag.scale_iterations = iters
             if ok_it:
                 R, t, s, ok = R_it, t_it, s_it, True
-        if not ok:
-            return None, f"scale recovery failed (<= {cfg.scale.min_points} usable depth points)"
+        direction = -(R[0].transpose(0, 1) @ t[0])  # T_prev_cur's translation direction (E is never a stop: judged)
+        support = self._gate(check_support("E", diag.num_inliers, int(mask[b].sum()), cfg.gate)
+                             or check_direction("E", direction, self.fusion.expected_direction, 1.0, cfg.gate), diag)
+        if support is not None:
+            return None, support
+        failed = f"scale recovery failed (<= {cfg.scale.min_points} usable depth points)"
+        diag.scale_cnn = s if ok else None
+        if self.fusion.uses_fusion:
+            est = self.fusion.estimate(R, t, s if ok else None, pi[sl], pj[sl], (mask[b] & e_res.inliers[b])[None],
+                                       K[sl], flow[sl], incon[sl], depth[sl], gen, diag)
+            if est.scale is None:
+                return None, failed
+            if est.source == "prediction":
+                diag.add_reason("scale: no observation; the temporal filter's prediction is used")
+            s, self._estimate = est.scale, est
+        elif not ok:
+            return None, failed
+        too_far = self._gate(check_length("E", s, self.fusion.expected_length, cfg.gate,
+                                                 image_parallax_px(pi[b][mask[b]], pj[b][mask[b]], R[0], K[b])), diag)
+        if too_far is not None:
+            predicted = None if self._estimate is None else self._estimate.predicted
+            if predicted is None or not cfg.scale.temporal:
+                return None, too_far
+            diag.add_reason(f"{too_far}; the temporal filter's prediction is used")
+            diag.scale_source = "prediction|gated"
+            s = predicted
         diag.tracker, diag.scale = TrackerUsed.essential, s
         return pose_from_rt(R, s * t)[0], None
+
+    def _gate(self, reason: str | None, diag: FrameDiagnostics) -> str | None:
+        """A gate's verdict on this frame: None (accepted) or the reason; after ``gate.max_consecutive`` frames in a
+        row that fell back to constant motion by a gate, the result is accepted (and the reason noted), and the next
+        frame is judged by no expectation (the overruled result may be wrong itself)."""
+        if reason is None:
+            return None
+        if self.fusion.rejections >= self.cfg.gate.max_consecutive:
+            diag.add_reason(f"{reason}: accepted after {self.fusion.rejections} gated frames in a row")
+            self._gate_overruled = True
+            return None
+        diag.gate_rejected = True
+        return reason
 
     def _pnp(self, sl: slice, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
              K: torch.Tensor, gen: torch.Generator, diag: FrameDiagnostics) -> torch.Tensor | None:
@@ -246,5 +309,18 @@ class VisualOdometry:
         if not bool(ok[0]):
             diag.add_reason("PnP failed")
             return None
-        diag.tracker, diag.scale = TrackerUsed.pnp, float(T[0, :3, 3].norm())
+        length = float(T[0, :3, 3].norm())
+        if self.cfg.gate.enabled:
+            _, usable = sample_depth(depth[sl], pi[sl], self.cfg.scale.max_depth, self.cfg.scale.depth_crop_top)
+            direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])
+            reason = self._gate(check_support("PnP", int(nin[0]), int((usable & mask[sl]).sum()), self.cfg.gate)
+                                or check_length("PnP", length, self.fusion.expected_length, self.cfg.gate,
+                                             image_parallax_px(pi[sl][mask[sl]], pj[sl][mask[sl]], T[0, :3, :3],
+                                                               K[sl]))
+                                or check_direction("PnP", direction, self.fusion.expected_direction, length,
+                                                   self.cfg.gate), diag)
+            if reason is not None:
+                diag.add_reason(reason)
+                return None
+        diag.tracker, diag.scale = TrackerUsed.pnp, length
         return T[0]

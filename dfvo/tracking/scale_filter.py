@@ -1,0 +1,167 @@
+"""Fusion of scale observations, per frame or over time (a Kalman filter over log scale).
+
+State: ``x`` = log of the current pair's translation length (metres) and ``b`` = log of the depth network's scale
+bias (its scale observations are ``exp(x + b)``). Observations per frame:
+
+    - ``cnn``: the scale from CNN depth (``log s = x + b + noise``, std ``cnn_log_std``);
+    - ``height``: the camera-height scale from the triangulated road plane (``log s = x + noise``, std
+      ``height_log_std``); it makes ``b`` observable;
+    - ``road_bias``: the depth network's own road plane height over the true camera height (``log = b + noise``, std
+      ``height_log_std``): a direct observation of the network's scale factor near the road;
+    - ``temporal``: the three-frame relative scale times the previous pair's length (a prediction of ``x`` with its
+      own standard error); without it the prediction is the previous length (speed random walk ``motion_log_std``).
+
+With ``temporal`` off the filter has no memory: each frame is the inverse-variance fusion of its own observations
+(``b`` starts from its prior every frame). ``b`` is estimated only when the camera height is given (else it stays 0:
+the network's bias cannot be told from the true scale). Absolute observations whose innovation exceeds
+``gate_sigma`` standard deviations are rejected once the filter has converged. Everything is plain Python floats:
+deterministic and identical in ``step`` and ``run``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+__all__ = ["ScaleEstimate", "FilterState", "ScaleFilter"]
+
+UNKNOWN_VAR = 1e6  # variance of log scale before any observation
+
+
+@dataclass(frozen=True)
+class FilterState:
+    """Mean ``(x, b)`` and covariance ``[[pxx, pxb], [pxb, pbb]]`` of (log scale, log CNN bias)."""
+
+    x: float = 0.0
+    b: float = 0.0
+    pxx: float = UNKNOWN_VAR
+    pxb: float = 0.0
+    pbb: float = 0.0
+
+    @property
+    def known(self) -> bool:
+        """The scale has been observed (its variance is finite and small)."""
+        return self.pxx < 1.0
+
+
+@dataclass
+class ScaleEstimate:
+    """One frame's fused scale: ``scale`` (None when nothing was observed and there is no prediction), ``source``
+    (``+``-joined names of the observations used, or ``prediction``), ``rejected`` (observations gated out),
+    ``predicted`` (the prior's scale, None before the first observation), ``bias`` (exp(b): the CNN's scale factor
+    as estimated), ``state`` (the posterior, committed by :meth:`ScaleFilter.commit`)."""
+
+    scale: float | None
+    source: str
+    predicted: float | None
+    bias: float
+    state: FilterState
+    rejected: list[str] = field(default_factory=list)
+    all_rejected: bool = False
+
+
+class ScaleFilter:
+    """Scale fusion (see the module docstring).
+
+    Args:
+        temporal: keep the state from frame to frame (else per-frame fusion).
+        estimate_bias: track the CNN bias ``b`` (meaningful with the camera-height observation and ``temporal``).
+        cnn_log_std, height_log_std: per-frame standard deviations of log scale of the two absolute sources.
+        motion_log_std: per-frame random walk of log scale without a temporal observation.
+        temporal_log_std: floor of the temporal observation's standard error; relative_process_std: added per frame.
+        bias_prior_log_std, bias_log_std: prior std of ``b`` and its per-frame random walk.
+        gate_sigma: innovation gate of absolute observations (standard deviations).
+        min_length: a frame that moved less (m) makes the filter forget the scale (a stop: no relative scale).
+        max_rejections: after this many frames in a row whose absolute observations were all gated out, the
+            filter forgets the scale and restarts from the observations (a wrong prediction cannot lock it).
+    """
+
+    def __init__(self, temporal: bool, estimate_bias: bool, cnn_log_std: float, height_log_std: float,
+                 motion_log_std: float, temporal_log_std: float, relative_process_std: float,
+                 bias_prior_log_std: float, bias_log_std: float, gate_sigma: float, min_length: float = 0.1,
+                 max_rejections: int = 3) -> None:
+        self.temporal, self.estimate_bias = bool(temporal), bool(estimate_bias)
+        self.cnn_var, self.height_var = cnn_log_std ** 2, height_log_std ** 2
+        self.motion_var, self.temporal_var = motion_log_std ** 2, temporal_log_std ** 2
+        self.rel_var = relative_process_std ** 2
+        self.bias_prior_var, self.bias_var = bias_prior_log_std ** 2, bias_log_std ** 2
+        self.gate_sigma = float(gate_sigma)
+        self.min_length, self.max_rejections = float(min_length), int(max_rejections)
+        self.rejected_frames = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the scale (the next frame starts from its own observations); the CNN bias estimate is kept."""
+        b, pbb = (self.state.b, self.state.pbb) if getattr(self, "state", None) is not None else \
+            (0.0, self.bias_prior_var if self.estimate_bias else 0.0)
+        self.state = FilterState(b=b, pbb=pbb)
+        self.rejected_frames = 0
+
+    # ------------------------------------------------------------------------------------------ one frame
+    def prior(self, temporal_scale: float | None = None, temporal_log_std: float | None = None) -> FilterState:
+        """The state predicted for this frame (``temporal_scale``: this pair's length from the relative scale)."""
+        s = self.state
+        if not self.temporal:
+            return FilterState(b=0.0, pbb=self.bias_prior_var if self.estimate_bias else 0.0)
+        pbb = s.pbb + (self.bias_var if self.estimate_bias else 0.0)
+        if temporal_scale is not None and temporal_scale > 0 and s.known:
+            var = max(self.temporal_var, (temporal_log_std or 0.0) ** 2) + self.rel_var
+            return replace(s, x=math.log(temporal_scale), pxx=s.pxx + var, pbb=pbb)
+        if not s.known:
+            return replace(s, pbb=pbb)
+        return replace(s, pxx=s.pxx + self.motion_var, pbb=pbb)
+
+    def _update(self, s: FilterState, z: float, hx: float, hb: float, r: float) -> tuple[FilterState, bool]:
+        """Kalman update with observation ``z = hx * x + hb * b + noise(r)``; False (unchanged) when gated out."""
+        y = z - hx * s.x - hb * s.b
+        px, pb = hx * s.pxx + hb * s.pxb, hx * s.pxb + hb * s.pbb  # P H^T
+        S = hx * px + hb * pb + r
+        if (s.known or hx == 0.0) and y * y > self.gate_sigma ** 2 * S:
+            return s, False
+        kx, kb = px / S, pb / S
+        return FilterState(x=s.x + kx * y, b=s.b + kb * y, pxx=s.pxx - kx * px, pxb=s.pxb - kx * pb,
+                           pbb=s.pbb - kb * pb), True
+
+    def estimate(self, prior: FilterState, cnn: float | None, height: float | None, road_bias: float | None = None,
+                 temporal_used: bool = False) -> ScaleEstimate:
+        """Fuse this frame's observations into ``prior``: ``cnn`` and ``height`` metric scales, ``road_bias`` the
+        network's road height over the true camera height (None or <= 0: absent)."""
+        if self.rejected_frames >= self.max_rejections:  # restart from this frame's observations
+            prior = replace(prior, x=0.0, pxx=UNKNOWN_VAR, pxb=0.0)
+            temporal_used = False
+        s, used, rejected = prior, [], []
+        if temporal_used:
+            used.append("temporal")
+        predicted = math.exp(prior.x) if prior.known else None
+        hb = 1.0 if self.estimate_bias else 0.0
+        for name, z, hx, hbi, r in (("road", road_bias, 0.0, 1.0, self.height_var),
+                                    ("height", height, 1.0, 0.0, self.height_var),
+                                    ("cnn", cnn, 1.0, hb, self.cnn_var)):
+            if z is None or not z > 0 or not math.isfinite(z) or (hx == 0.0 and not self.estimate_bias):
+                continue
+            s, ok = self._update(s, math.log(z), hx, hbi, r)
+            (used if ok else rejected).append(name)
+        absolute = [u for u in used if u not in ("temporal", "road")]
+        all_rejected = bool(rejected) and not absolute
+        if not s.known:
+            return ScaleEstimate(None, "none", predicted, math.exp(s.b), s, rejected)
+        source = "+".join(used) if absolute else ("temporal" if temporal_used else "prediction")
+        return ScaleEstimate(math.exp(s.x), source, predicted, math.exp(s.b), s, rejected, all_rejected)
+
+    def commit(self, state: FilterState, all_rejected: bool = False) -> None:
+        """Keep ``state`` (the chosen frame's posterior) for the next frame (no-op without memory);
+        ``all_rejected``: every absolute observation of the frame was gated out."""
+        if self.temporal:
+            self.state = state
+            self.rejected_frames = self.rejected_frames + 1 if all_rejected else 0
+
+    def commit_length(self, length: float, log_std: float, prior: FilterState) -> None:
+        """The frame used a translation of ``length`` metres not from the fused scale (PnP, constant motion): keep
+        it as the state with variance ``log_std**2``; a length under ``min_length`` forgets the scale."""
+        if not self.temporal:
+            return
+        self.rejected_frames = 0
+        if length >= self.min_length:
+            self.state = replace(prior, x=math.log(length), pxx=max(log_std ** 2, 1e-12), pxb=0.0)
+        else:
+            self.state = replace(prior, x=0.0, pxx=UNKNOWN_VAR, pxb=0.0)

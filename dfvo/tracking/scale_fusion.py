@@ -1,0 +1,193 @@
+"""The odometry loop's scale state: observations of each E-tracked pair's scale and what carries to the next frame.
+
+Per E-tracked frame (:meth:`ScaleFusion.estimate`): the CNN-depth scale (given), the camera-height scale from the
+road plane among the triangulated points (``tracker.scale.camera_height``), the three-frame relative scale
+(``tracker.scale.temporal``), fused by :class:`dfvo.tracking.scale_filter.ScaleFilter`. After the frame's pose is
+decided (:meth:`ScaleFusion.end_frame`): the filter keeps the length used, and the pair's metric depths in its later
+image are kept for the next frame's relative scale. The plausibility gates' expected length is the median of the
+last ``gate.length_window`` tracked (not constant-motion) translation lengths (:attr:`ScaleFusion.expected_length`),
+their expected direction the last one's.
+
+Convention:
+    One frame (B=1) at a time, in sequence order: ``R`` (1,3,3), ``t`` (1,3) unit ``T_cur_prev``; pixels (1,N,2)
+    of the earlier (``pts_prev``) and later (``pts_cur``) image; ``rows`` (1,N) bool; ``K`` (1,3,3); flow (1,2,H,W)
+    prev->cur and inconsistency (1,1,H,W) in pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+
+from dfvo.geometry.two_view import normalise_points
+from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
+from dfvo.tracking.ground_plane import fit_road_plane, parallax_deg, road_candidates, road_grid
+from dfvo.tracking.scale import triangulated_depths
+from dfvo.tracking.scale_filter import FilterState, ScaleEstimate, ScaleFilter
+from dfvo.tracking.temporal_scale import MiddleDepths, middle_depths, relative_scale
+
+__all__ = ["HeightObservation", "camera_height_scale", "depth_road_height", "ScaleFusion"]
+
+
+@dataclass
+class HeightObservation:
+    """The camera-height scale of one frame: ``scale`` (None when the plane fit failed), ``height_unit`` (the
+    fitted height in the unit translation's unit), ``inliers`` (plane inliers)."""
+
+    scale: float | None
+    height_unit: float | None
+    inliers: int
+
+
+def camera_height_scale(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_prev: torch.Tensor,
+                        pts_cur: torch.Tensor, rows: torch.Tensor, image_hw: tuple[int, int], cfg: TrackerConfig,
+                        generator: torch.Generator | None) -> HeightObservation:
+    """``camera_height / fitted height`` of the road plane among the rows' points triangulated with the unit pose
+    (see :mod:`dfvo.tracking.ground_plane`); settings ``cfg.road_plane``, height ``cfg.scale.camera_height``."""
+    rp = cfg.road_plane
+    z_i, _, front = triangulated_depths(R, t, K, pts_prev, pts_cur)
+    x = normalise_points(pts_prev.to(torch.float64), K.to(torch.float64))
+    X = torch.cat([x, torch.ones_like(x[..., :1])], -1) * z_i[..., None]
+    H, W = image_hw
+    cand = rows & front & road_candidates(pts_prev, H, W, rp.min_row_fraction, rp.max_col_offset_fraction,
+                                          rp.max_row_fraction)
+    cand = cand & (parallax_deg(X, t.to(torch.float64), R.to(torch.float64)) >= rp.min_parallax_deg)
+    plane = fit_road_plane(X, cand, threshold=rp.threshold, max_tilt_deg=rp.max_tilt_deg, min_inliers=rp.min_inliers,
+                           trials=rp.trials, quantile=rp.quantile,
+                           generators=None if generator is None else [generator])
+    if not bool(plane.success[0]):
+        return HeightObservation(None, None, int(plane.num_inliers[0]))
+    h = float(plane.height[0])
+    return HeightObservation(float(cfg.scale.camera_height) / h, h, int(plane.num_inliers[0]))
+
+
+def depth_road_height(depth: torch.Tensor, K: torch.Tensor, cfg: TrackerConfig,
+                      generator: torch.Generator | None) -> HeightObservation:
+    """The camera height above the road plane of the depth network's own points (depth (1,1,H,W) metres of the
+    earlier frame, K (1,3,3)) on a grid of the road band; ``scale`` is ``fitted height / camera_height``: the
+    network's scale factor near the road (1 when its road is metric)."""
+    rp = cfg.road_plane
+    H, W = depth.shape[-2:]
+    px = road_grid(H, W, rp.min_row_fraction, rp.max_row_fraction, rp.max_col_offset_fraction, rp.grid_step)
+    z = depth[0, 0][px[:, 1].long(), px[:, 0].long()].to(torch.float64)
+    x = normalise_points(px[None], K.to(torch.float64))
+    X = torch.cat([x, torch.ones_like(x[..., :1])], -1) * z[None, :, None]
+    ok = (z > 0) & torch.isfinite(z) & (z <= cfg.scale.max_depth)
+    plane = fit_road_plane(X, ok[None], threshold=rp.threshold, max_tilt_deg=rp.max_tilt_deg,
+                           min_inliers=rp.min_inliers, trials=rp.trials, quantile=rp.quantile,
+                           generators=None if generator is None else [generator])
+    if not bool(plane.success[0]):
+        return HeightObservation(None, None, int(plane.num_inliers[0]))
+    h = float(plane.height[0])
+    return HeightObservation(h / float(cfg.scale.camera_height), h, int(plane.num_inliers[0]))
+
+
+class ScaleFusion:
+    """Scale observations and the state carried between frames (see the module docstring)."""
+
+    def __init__(self, cfg: TrackerConfig) -> None:
+        self.cfg = cfg
+        sc, sf = cfg.scale, cfg.scale_filter
+        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=sc.camera_height is not None,
+                                  cnn_log_std=sf.cnn_log_std, height_log_std=cfg.road_plane.log_std,
+                                  motion_log_std=sf.motion_log_std, temporal_log_std=sf.temporal_log_std,
+                                  relative_process_std=sf.relative_process_std,
+                                  bias_prior_log_std=sf.bias_prior_log_std, bias_log_std=sf.bias_log_std,
+                                  gate_sigma=sf.gate_sigma, min_length=sf.min_length,
+                                  max_rejections=sf.max_rejections)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (a new sequence)."""
+        self.filter.state = None
+        self.filter.reset()
+        self.middle: MiddleDepths | None = None
+        self.expected_length: float | None = None
+        self._recent: list[float] = []
+        self.expected_direction: torch.Tensor | None = None
+        self.rejections = 0
+        self._height_unit: float | None = None
+        self._prior = FilterState()
+
+    @property
+    def uses_fusion(self) -> bool:
+        """Anything beyond the CNN-depth scale is on."""
+        return self.cfg.scale.camera_height is not None or self.cfg.scale.temporal
+
+    def estimate(self, R: torch.Tensor, t: torch.Tensor, cnn_scale: float | None, pts_prev: torch.Tensor,
+                 pts_cur: torch.Tensor, rows: torch.Tensor, K: torch.Tensor, flow: torch.Tensor,
+                 inconsistency: torch.Tensor, depth: torch.Tensor, generator: torch.Generator | None,
+                 diag: FrameDiagnostics) -> ScaleEstimate:
+        """This E-tracked frame's fused scale from its observations (``depth`` (1,1,H,W): the earlier frame's CNN
+        depth, for ``road_plane.points=depth``); fills the scale fields of ``diag``."""
+        cfg, sf = self.cfg, self.cfg.scale_filter
+        diag.scale_cnn = cnn_scale
+        temporal_scale, temporal_std = None, None
+        if cfg.scale.temporal:
+            rel = relative_scale(self.middle, flow, inconsistency, K, R, t, max_inconsistency=sf.max_inconsistency,
+                                 min_parallax_deg=sf.min_parallax_deg, min_points=sf.min_points)
+            temporal_scale, temporal_std = rel.scale, rel.log_std
+            diag.scale_temporal = temporal_scale
+        height, road_bias = None, None
+        self._height_unit = None
+        if cfg.scale.camera_height is not None and cfg.road_plane.points == "depth":
+            obs = depth_road_height(depth, K, cfg, generator)
+            road_bias, diag.plane_inliers = obs.scale, obs.inliers
+            if obs.height_unit is not None:  # the network's road height, metres
+                diag.camera_height_fit = obs.height_unit
+        elif cfg.scale.camera_height is not None:
+            obs = camera_height_scale(R, t, K, pts_prev, pts_cur, rows, tuple(flow.shape[-2:]), cfg, generator)
+            height, diag.plane_inliers = obs.scale, obs.inliers
+            diag.scale_height = height
+            self._height_unit = obs.height_unit
+        prior = self.filter.prior(temporal_scale, temporal_std)
+        est = self.filter.estimate(prior, cnn_scale, height, road_bias,
+                                   temporal_used=temporal_scale is not None and self.filter.state.known)
+        if road_bias is not None and cnn_scale is not None:
+            diag.scale_height = cnn_scale / est.bias  # the CNN-depth scale corrected by the estimated factor
+        diag.scale_predicted = est.predicted
+        if cfg.scale.camera_height is not None:
+            diag.cnn_bias = est.bias
+        diag.scale_source = est.source + (f"|rejected:{'+'.join(est.rejected)}" if est.rejected else "")
+        if cfg.scale.camera_height is not None and est.scale is not None and self._height_unit is not None:
+            diag.camera_height_fit = self._height_unit * est.scale
+        self._prior = prior
+        return est
+
+    def end_frame(self, T_cur_prev: torch.Tensor | None, T_prev_cur: torch.Tensor, tracker: TrackerUsed | None,
+                  estimate: ScaleEstimate | None, pts_prev: torch.Tensor, pts_cur: torch.Tensor, rows: torch.Tensor,
+                  K: torch.Tensor) -> None:
+        """After the frame's pose: ``T_cur_prev`` (4,4) tracked (None: constant motion), ``T_prev_cur`` the motion
+        used; ``estimate`` the fused scale when the E-tracker's pose was used with it; rows (N,) of (N,2) pixels."""
+        length = float(T_prev_cur[:3, 3].norm())
+        if tracker == TrackerUsed.essential and estimate is not None and estimate.scale is not None:
+            self.filter.commit(estimate.state if abs(estimate.scale - length) <= 1e-9 * max(1.0, length)
+                               else self._state_at(length), estimate.all_rejected)
+        elif tracker == TrackerUsed.constant_motion:
+            prior = self.filter.prior()
+            self.filter.commit_length(length, prior.pxx ** 0.5 if prior.known else 1e3, prior)
+        else:
+            self.filter.commit_length(length, self.cfg.scale_filter.cnn_log_std, self.filter.prior())
+        if T_cur_prev is not None:
+            self._recent = (self._recent + [length])[-int(self.cfg.gate.length_window):]
+            self.expected_length = sorted(self._recent)[len(self._recent) // 2]  # median of the last tracked lengths
+            self.expected_direction = T_prev_cur[:3, 3] / length if length > self.cfg.gate.stop_length else None
+        self.middle = None
+        if T_cur_prev is not None and self.cfg.scale.temporal and length >= self.cfg.scale_filter.min_length:
+            self.middle = middle_depths(T_cur_prev, K, pts_prev, pts_cur, rows, self.cfg.scale_filter.min_parallax_deg)
+
+    def forget_motion(self) -> None:
+        """After a result accepted against the gates (it may be wrong itself): the gates judge the next frame by no
+        expectation, the filter forgets the scale (the CNN bias estimate is kept) and no relative scale is taken
+        from this frame's points."""
+        self.expected_length, self.expected_direction, self._recent = None, None, []
+        self.filter.reset()
+        self.middle = None
+
+    def _state_at(self, length: float) -> FilterState:
+        """The prior with its scale moved to ``length`` (the frame used the prediction instead of the posterior)."""
+        p = self._prior
+        return replace(p, x=math.log(max(length, 1e-12))) if p.known else p
