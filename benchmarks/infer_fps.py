@@ -1,10 +1,16 @@
 """End-to-end inference speed: frames per second of infer.py's loop and where the time goes.
 
 Runs :func:`dfvo.inference.pipeline.run_inference` in-process (the same code as ``python infer.py``) and prints
-one JSON object: resolution, sources, frames, ``fps`` (frame pairs per wall second, everything included),
-``fps_without_loading`` (excluding frame reading / synthetic rendering, which is what a camera stream pays),
-``timing_ms_per_frame`` per stage (load, flow, depth, tracker and any stage the tracker reports), the RPE/ATE
-of the run, torch threads, machine and load average.
+one JSON object: resolution, sources, frames, ``fps`` (frame pairs per wall second, everything included; with
+``--repeat N`` the best of N runs, each run's in ``fps_runs``), ``fps_without_loading`` (excluding the main thread's
+frame reading / synthetic rendering, which is what a camera stream pays), ``timing_ms_per_frame`` per stage (load,
+flow, refine, depth, tracker, the tracker's own split into selection / E-tracker / sequential part, and the
+``wait_*`` stages of the overlapped loop: stages run in three threads, so they overlap and their sum can exceed
+``1000 / fps``), ``cpu_ms_per_frame`` (process CPU time: ``loop``, everything per frame, and each stage; it follows
+the work, not a shared machine's load: compare it in the serial loop, ``--overlap none`` or ``load``),
+``work_per_frame`` (load-independent counts: refined pixel-iterations, network input pixels,
+correspondences), the RPE/ATE of the run, torch threads, machine and the 1-minute load average before and after
+(the machine may be shared: compare variants back to back, and trust the work counts over the clock).
 
 Sources:
     --sources oracle          true flow/depth of the synthetic world (their time is the renderer's)
@@ -13,6 +19,13 @@ Sources:
 
 Usage: python benchmarks/infer_fps.py [--frames 20] [--height 192] [--width 640] [--threads 2]
        [--sources oracle|network|random-network] [--data synthetic|kitti_odom --root ROOT --seq 06]
+       [--repeat N] [--overlap none|load|full] [--no-overlap] [--device cpu|cuda|auto]
+       [--overrides flow.refine.iterations=5 ...]
+
+KITTI 06 with the default configuration (issue 15's figure):
+
+    OMP_NUM_THREADS=2 python benchmarks/infer_fps.py --data kitti_odom --root ../shared/data/kitti_odom --seq 06 \
+        --frames 51 --sources network --repeat 2
 """
 
 from __future__ import annotations
@@ -22,12 +35,17 @@ import json
 import os
 import platform
 import tempfile
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
 
+import dfvo.inference.loop as loop
+import dfvo.inference.pipeline as pipeline
 from dfvo.inference.pipeline import run_inference
+from dfvo.inference.timing import StageTimer
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -52,7 +70,7 @@ def main() -> None:
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--sources", choices=["oracle", "network", "random-network"], default="oracle")
+    p.add_argument("--sources", choices=["oracle", "network", "random-network", "dis"], default="oracle")
     p.add_argument("--flow-ckpt", default="checkpoints/flow.safetensors")
     p.add_argument("--depth-ckpt", default="checkpoints/depth.safetensors")
     p.add_argument("--flow-variant", default="default")
@@ -61,13 +79,45 @@ def main() -> None:
     p.add_argument("--root", default=None)
     p.add_argument("--seq", default=None)
     p.add_argument("--overrides", nargs="*", default=[], help="extra infer.yaml overrides (tracker=pnp ...)")
+    p.add_argument("--repeat", type=int, default=1, help="runs; the fastest is reported (each in fps_runs)")
+    p.add_argument("--overlap", choices=list(loop.OVERLAP_MODES), default=None,
+                   help=f"loop threads (dfvo.inference.loop); default {loop.OVERLAP!r}")
+    p.add_argument("--no-overlap", action="store_true", help="the serial loop: --overlap none")
+    p.add_argument("--device", default="cpu", help="cpu | cuda | auto")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
+    args.overlap = "none" if args.no_overlap else (args.overlap or loop.OVERLAP)
+    loop.OVERLAP = args.overlap
+    load_before = os.getloadavg()[0]
+    runs = [_run_once(args) for _ in range(max(1, args.repeat))]
+    summary, cfg = max(runs, key=lambda r: r[0]["fps"])
+    print(json.dumps(_report(args, summary, cfg, [r[0]["fps"] for r in runs], load_before), indent=2))
+
+
+class _LoopMeter:
+    """Wraps the pipeline's ``track_sequence``: keeps the run's StageTimer and the process CPU seconds of the loop
+    (everything per frame, the per-frame outputs included; not the start-up or the final report)."""
+
+    def __init__(self) -> None:
+        self.timer: StageTimer | None = None
+        self.cpu_seconds = 0.0
+        self.original = pipeline.track_sequence
+
+    def __call__(self, *args: object, **kwargs: object) -> Iterator[object]:
+        self.timer = kwargs["timer"]
+        start = time.process_time()
+        try:
+            yield from self.original(*args, **kwargs)
+        finally:
+            self.cpu_seconds = time.process_time() - start
+
+
+def _run_once(args: argparse.Namespace) -> tuple[dict, object]:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         ov = [f"data={args.data}", f"img_res.height={args.height}", f"img_res.width={args.width}",
               f"out_dir={tmp / 'out'}", "progress=false", f"batch_size={args.batch_size}",
-              f"num_threads={args.threads}"]
+              f"num_threads={args.threads}", f"device={args.device}"]
         if args.data == "synthetic":
             ov.append(f"data.num_frames={args.frames}")
         else:
@@ -76,6 +126,9 @@ def main() -> None:
             ov.append(f"seq={args.seq}")
         if args.sources == "oracle":  # explicit: the default `auto` would pick the shipped checkpoints
             ov += ["flow=oracle", "depth=oracle"]
+        elif args.sources == "dis":  # the classical flow (OpenCV DIS) with the depth network
+            ov += ["flow=dis", "depth=network", f"depth.checkpoint={args.depth_ckpt}",
+                   f"depth.depth_scale={args.depth_scale}"]
         else:
             flow, depth = ((args.flow_ckpt, args.depth_ckpt) if args.sources == "network"
                            else _random_checkpoints(tmp, args.flow_variant))
@@ -83,20 +136,49 @@ def main() -> None:
                    f"depth.depth_scale={args.depth_scale}"]
         with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "infer"), version_base="1.3"):
             cfg = compose("infer", overrides=ov + list(args.overrides))
-        summary = run_inference(cfg)
+        meter = _LoopMeter()
+        pipeline.track_sequence = meter
+        try:
+            summary = run_inference(cfg)
+        finally:
+            pipeline.track_sequence = meter.original
+    frames = max(int(summary["frames"]) - 1, 1)  # tracked frames
+    summary["cpu_ms_per_frame"] = {"loop": round(1000.0 * meter.cpu_seconds / frames, 2),
+                                   **{k: round(v, 2) for k, v in meter.timer.cpu_ms_per_frame(frames).items()}}
+    return summary, cfg
+
+
+def _work(cfg: object, summary: dict) -> dict[str, object]:
+    """Load-independent work per frame: refined pixel-iterations (forward and backward), network input sizes."""
+    h, w = int(cfg.img_res.height), int(cfg.img_res.width)
+    refine = summary.get("sources", {}).get("flow_refinement")
+    return {
+        "refine_pixel_iterations": 0 if not refine else 2 * h * w * int(refine["iterations"]),
+        "refine_method": None if not refine else str(refine.get("method", "symmetric")),
+        "correspondences": int(cfg.tracker.correspondence.num_correspondences),
+        "working_pixels": h * w,
+    }
+
+
+def _report(args: argparse.Namespace, summary: dict, cfg: object, fps_runs: list[float],
+            load_before: float) -> dict[str, object]:
     timing = summary["timing_ms_per_frame"]
     per_frame_ms = 1000.0 / summary["fps"]
+    loading_ms = timing.get("load", 0.0) if args.overlap == "none" else timing.get("wait_load", 0.0)
     metrics = summary.get("metrics") or {}
-    print(json.dumps({
+    return {
         "data": args.data, "sources": args.sources, "resolution": [args.height, args.width],
-        "frames": summary["frames"], "fps": round(summary["fps"], 3),
-        "fps_without_loading": round(1000.0 / max(per_frame_ms - timing.get("load", 0.0), 1e-9), 3),
+        "frames": summary["frames"], "fps": round(summary["fps"], 3), "fps_runs": [round(f, 3) for f in fps_runs],
+        "overlap": args.overlap, "device": summary.get("device"),
+        "fps_without_loading": round(1000.0 / max(per_frame_ms - loading_ms, 1e-9), 3),
         "timing_ms_per_frame": {k: round(v, 2) for k, v in timing.items()},
+        "cpu_ms_per_frame": summary["cpu_ms_per_frame"],
+        "work_per_frame": _work(cfg, summary),
         "rpe_m": metrics.get("rpe_m"), "rpe_deg": metrics.get("rpe_deg"), "ate_m": metrics.get("ate_m"),
         "fallback": summary["fallback"], "torch_threads": torch.get_num_threads(),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-        "load_avg": os.getloadavg()[0],
-    }, indent=2))
+        "load_avg_before": round(load_before, 2), "load_avg_after": round(os.getloadavg()[0], 2),
+    }
 
 
 if __name__ == "__main__":

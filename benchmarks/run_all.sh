@@ -17,10 +17,13 @@ run() {  # run NAME COMMAND...
     echo "rc=$?"
 }
 run fps_kitti06 python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 --sources network
-run fps_kitti06_one_view_scale python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
-    --sources network --overrides tracker.scale.depth_views=1
-run fps_kitti06_refine3 python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
-    --sources network --overrides flow.refine.iterations=3
+run fps_kitti06_per_frame_scale python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
+    --sources network --overrides tracker.scale.depth_views=1 tracker.scale.temporal=false \
+    tracker.scale.camera_height_from_data=false
+run fps_kitti06_dense_refine python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
+    --sources network --overrides flow.refine.mode=dense
+run fps_kitti06_dis python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
+    --sources dis
 run fps_kitti06_paper_pipeline python benchmarks/infer_fps.py --data kitti_odom --root "$KITTI" --seq 06 --frames 51 \
     --sources network --overrides experiment=paper
 run fps_synthetic_network python benchmarks/infer_fps.py --frames 30 --sources network

@@ -30,10 +30,17 @@ sweep tracker tracker=hybrid,pnp,e          # hybrid = the reference run
 sweep correspondence correspondence=uniform,best_n
 sweep scale scale=iterative
 sweep scale_views tracker.scale.depth_views=1   # the paper's one-view scale
+# the scale over time and the camera-height prior (docs/scale.md), each off alone and both off (the paper's
+# per-frame CNN-depth scale); the camera height is on where the dataset sets data.camera_height (KITTI)
+sweep scale_temporal tracker.scale.temporal=false
+sweep scale_height tracker.scale.camera_height_from_data=false
+sweep scale_per_frame tracker.scale.temporal=false tracker.scale.camera_height_from_data=false
+sweep gates tracker.gate.enabled=false
 sweep model_selection model_selection=flow
 sweep img_res img_res=full
 if [[ $ORACLE -eq 0 ]]; then                  # factors of the network flow
     sweep flow_refine flow.refine.iterations=0
+    sweep flow_refine_mode flow.refine.mode=dense,pyramid   # the dense stage alone (faster), the pyramid alone
     sweep online online_finetune=true
     # the classical baseline (OpenCV DIS, medium preset): the row that says what the learned flow buys
     if python -c "import cv2" 2>/dev/null; then

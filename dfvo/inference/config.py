@@ -256,7 +256,8 @@ class InferConfig:
         kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)
         if kind == "synthetic" and self.seq is not None and KITTI_ODOM_SEQ.match(str(self.seq)):
             height = KittiOdomDataConfig.camera_height  # `seq=NN` alone runs KITTI odometry (frames.resolve_data)
-        if height is not None and self.tracker.scale.camera_height is None:  # the dataset's camera height
+        if height is not None and self.tracker.scale.camera_height is None and \
+                self.tracker.scale.camera_height_from_data:  # the dataset's camera height
             if not float(height) > 0:
                 raise ValueError(f"data.camera_height={height}; expected a height in metres > 0, or null (unknown)")
             self.tracker.scale.camera_height = float(height)

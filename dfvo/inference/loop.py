@@ -3,26 +3,57 @@
 Convention:
     Flow and depth are computed for ``batch_size`` consecutive frame pairs at once (one network batch), and the
     tracker takes the same pairs as one batch (``VisualOdometry.run``). Network flow is refined photometrically
-    (``refine``) before the forward-backward test; oracle and classical flows are used as they are. The depth given
-    to the tracker is that of the earlier frame of each pair, in metres (with ``tracker.scale.depth_views=2`` also
-    the later frame's); each frame's depth is computed once. Frame 0's pose is the identity and has no record.
+    (``refine``, :func:`dfvo.matching.flow_refinement.refine_consecutive`: each frame prepared once) before the
+    forward-backward test; oracle and classical flows are used as they are. The depth given to the tracker is that
+    of the earlier frame of each pair, in metres (with ``tracker.scale.depth_views=2`` also the later frame's);
+    each frame's depth is computed once. Frame 0's pose is the identity and has no record.
+
+Overlap (``overlap``): ``"load"`` (the default) decodes and resizes the frames of batch k+1 in a loader thread
+while the main thread works on batch k (pinned for a CUDA copy; not for the synthetic world, whose renderer the
+oracle sources share and whose caches are not thread-safe: it renders in the main thread). ``"full"`` also moves the
+refinement and the tracker to a tracker thread, which works on batch k-1 while the main thread runs the flow and
+depth networks of batch k; on a CPU the two busy threads then get half of the torch threads each (restored after
+the loop), so their OpenMP teams do not compete for the same cores. ``"none"`` is the serial loop: on a CPU shared
+with other processes it was 3-10x slower than ``"load"`` (GNU OpenMP's workers busy-wait long after each parallel
+region unless the process has more OpenMP threads than CPUs, as the loader thread makes it; ``docs/speed.md``).
+The tracker's state is sequential, so batches reach it one at a time and in order; each frame draws its random
+samples from its own seeded generator, so the poses are the same, bit for bit, in every mode and for any batch
+size. Stage times of different threads overlap (``load``, ``refine`` and ``tracker`` are measured in the thread
+that runs them; ``wait_load`` and ``wait_tracker`` are what the main thread spent blocked on them).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
 
-from dfvo.inference.frames import FrameSequence
-from dfvo.inference.timing import StageTimer
-from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward
+from dfvo.data.sequence import FrameSequence
+from dfvo.inference.timing import StageTimer, cuda_sync
+from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.tracking import FrameResult, VisualOdometry
 from dfvo.tracking.config import TrackerMode
 
-__all__ = ["FrameRecord", "track_sequence"]
+__all__ = ["FrameRecord", "track_sequence", "OVERLAP", "OVERLAP_MODES"]
+
+OVERLAP_MODES = ("none", "load", "full")
+OVERLAP = "load"
+"""Default of ``track_sequence(overlap=None)``: one of :data:`OVERLAP_MODES` (see the module docstring; benchmarks
+set it to compare the modes)."""
+
+
+def _overlap_mode(overlap: str | bool | None) -> str:
+    """``none`` | ``load`` | ``full`` of an ``overlap`` argument (None: :data:`OVERLAP`; True: full; False: none)."""
+    overlap = OVERLAP if overlap is None else overlap
+    if isinstance(overlap, bool):
+        return "full" if overlap else "none"
+    if overlap not in OVERLAP_MODES:
+        raise ValueError(f"overlap={overlap!r}; expected one of {OVERLAP_MODES} (or True/False)")
+    return str(overlap)
 
 
 @dataclass
@@ -47,53 +78,167 @@ class FrameRecord:
     depth: torch.Tensor | None = None
 
 
+@dataclass
+class _Batch:
+    """One batch between the network stage and the tracker: pairs ``idx[k] → idx[k]+1``, (n+1,3,H,W) images."""
+
+    idx: list[int]
+    imgs: torch.Tensor
+    flow_fwd: torch.Tensor
+    flow_bwd: torch.Tensor
+    depth: torch.Tensor
+    depth_next: torch.Tensor | None
+    share: dict[str, float]
+
+
+class _Loader:
+    """Frames of each batch, decoded in a background thread one batch ahead (or in the caller when disabled)."""
+
+    def __init__(self, seq: FrameSequence, frames: list[list[int]], timer: StageTimer, background: bool,
+                 pin: bool) -> None:
+        self.seq, self.frames, self.timer, self.pin = seq, frames, timer, pin
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="dfvo-load") if background else None
+        self.futures: dict[int, Future] = {}
+
+    def _load(self, k: int) -> torch.Tensor:
+        start, cpu = time.perf_counter(), time.process_time()
+        out = torch.stack([self.seq.image(i) for i in self.frames[k]])
+        if self.pin:
+            out = out.pin_memory()
+        self.timer.add("load", time.perf_counter() - start, time.process_time() - cpu)
+        return out
+
+    def _submit(self, k: int) -> None:
+        if self.pool is not None and k < len(self.frames) and k not in self.futures:
+            self.futures[k] = self.pool.submit(self._load, k)
+
+    def get(self, k: int) -> torch.Tensor:
+        """(n,3,H,W) CPU frames of batch ``k``; starts decoding batch ``k+1``."""
+        if self.pool is None:
+            return self._load(k)
+        self._submit(k)
+        self._submit(k + 1)
+        with self.timer("wait_load"):
+            return self.futures.pop(k).result()
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _batches(length: int, batch_size: int) -> list[list[int]]:
+    batch = max(1, int(batch_size))
+    return [list(range(first, min(first + batch, length - 1))) for first in range(0, length - 1, batch)]
+
+
 def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSource, vo: VisualOdometry, *,
                    refine: FlowRefinementConfig | None, batch_size: int, timer: StageTimer, device: str = "cpu",
-                   finetuner: object | None = None) -> Iterator[FrameRecord]:
+                   finetuner: object | None = None, overlap: str | bool | None = None) -> Iterator[FrameRecord]:
     """Track ``seq`` and yield one :class:`FrameRecord` per frame 1..N-1, in order, as soon as it is known.
 
     Args:
         seq: the frames. flow_src, depth_src: the sources. vo: the odometry (its state continues across calls).
         refine: photometric refinement of the flow (None: none). batch_size: frame pairs per batch.
-        timer: receives ``load``, ``finetune``, ``flow``, ``refine``, ``depth``, ``tracker`` seconds.
+        timer: receives ``load``, ``finetune``, ``flow``, ``refine``, ``depth``, ``tracker`` seconds (the tracker
+            split into ``tracker_selection``, ``tracker_e_tracker``, ``tracker_sequential``; and ``wait_load``,
+            ``wait_tracker`` when those run in background threads).
+        device: where the frames, networks and tracker tensors live (``cpu``, ``cuda``, ``cuda:N``).
         finetuner: optional online flow finetuner (:class:`dfvo.training.online_flow.OnlineFlowFinetuner`).
+        overlap: ``"none"``, ``"load"`` (decoding in a background thread) or ``"full"`` (also the refinement and
+            the tracker; see the module docstring); True: ``"full"``, False: ``"none"``, None: :data:`OVERLAP`.
     """
+    mode = _overlap_mode(overlap)
     K = seq.K.to(device)[None]
     two_views = vo.cfg.scale.depth_views == 2 and vo.cfg.mode != TrackerMode.pnp
+    batches = _batches(seq.length, batch_size)
+    frames = [[i + 1 for i in idx] for idx in batches]
+    frames[0] = [0] + frames[0]
+    cuda = torch.device(device).type == "cuda"
+    # the synthetic world's render caches are not thread-safe and its oracle sources use them in the main thread
+    loader = _Loader(seq, frames, timer, background=mode != "none" and seq.world is None,
+                     pin=cuda and torch.cuda.is_available())
+    tracker_pool = ThreadPoolExecutor(1, thread_name_prefix="dfvo-track") if mode == "full" else None
+    threads = torch.get_num_threads()
+    if mode == "full" and not cuda:  # two busy threads share the cores: half of the torch threads each
+        torch.set_num_threads(max(1, threads // 2))
+
+    def refine_flows(work: _Batch) -> None:
+        if refine is None:
+            return
+        cuda_sync()
+        start, cpu = time.perf_counter(), time.process_time()
+        work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
+        cuda_sync()
+        seconds = time.perf_counter() - start
+        timer.add("refine", seconds, time.process_time() - cpu)
+        work.share["t_refine"] = seconds / len(work.idx)
+
+    def track(work: _Batch) -> tuple[_Batch, list[FrameResult]]:
+        if mode == "full":  # the refinement runs in the tracker thread, beside the next batch's networks
+            refine_flows(work)
+        cuda_sync()
+        start, cpu = time.perf_counter(), time.process_time()
+        n = len(work.idx)
+        results = vo.run(work.flow_fwd, work.flow_bwd, work.depth, K.expand(n, 3, 3), batch_size=n,
+                         depths_next=work.depth_next)
+        cuda_sync()
+        seconds = time.perf_counter() - start
+        timer.add("tracker", seconds, time.process_time() - cpu)
+        for part in ("selection", "e_tracker", "sequential"):  # the tracker's own split of its time
+            timer.add(f"tracker_{part}", sum(getattr(r.diagnostics, f"time_{part}", 0.0) for r in results))
+        work.share["t_tracker"] = seconds / n
+        return work, results
+
+    def records(work: _Batch, results: list[FrameResult]) -> Iterator[FrameRecord]:
+        for k, (i, res) in enumerate(zip(work.idx, results, strict=True)):
+            yield FrameRecord(i + 1, work.imgs[k], work.imgs[k + 1], work.flow_fwd[k], work.flow_bwd[k],
+                              work.depth[k], res, work.share,
+                              None if work.depth_next is None else work.depth_next[k])
+
     depth_carry: torch.Tensor | None = None  # depth of the first frame of the next batch (= this batch's last)
-    batch = max(1, int(batch_size))
-    with timer("load"):
-        prev_img = seq.image(0)[None].to(device)
-    for first in range(0, seq.length - 1, batch):
-        idx = list(range(first, min(first + batch, seq.length - 1)))
-        n = len(idx)
-        with timer("load"):
-            imgs = torch.cat([prev_img] + [seq.image(i + 1)[None].to(device) for i in idx])
-        prev_img = imgs[-1:]
-        if finetuner is not None and finetuner.active:
-            with timer("finetune"):
-                for k in range(n):
-                    finetuner.step(*flow_src.network_inputs(imgs[k:k + 1], imgs[k + 1:k + 2]))
-        with timer("flow"):
-            flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)
-        t_refine = 0.0
-        if refine is not None:
-            with timer("refine"):
-                flow_fwd, flow_bwd = refine_forward_backward(imgs[:-1], imgs[1:], flow_fwd, flow_bwd, refine)
-            t_refine = timer.last["refine"]
-        with timer("depth"):
-            depth_next = None
-            if two_views:
-                later = depth_src(imgs[1:], [i + 1 for i in idx])
-                first_depth = depth_src(imgs[:1], idx[:1]) if depth_carry is None else depth_carry
-                depth = torch.cat([first_depth, later[:-1]])
-                depth_next, depth_carry = later, later[-1:]
-            else:
-                depth = depth_src(imgs[:-1], idx)
-        with timer("tracker"):
-            results = vo.run(flow_fwd, flow_bwd, depth, K.expand(n, 3, 3), batch_size=n, depths_next=depth_next)
-        share = {"t_flow": timer.last["flow"] / n, "t_refine": t_refine / n, "t_depth": timer.last["depth"] / n,
-                 "t_tracker": timer.last["tracker"] / n}
-        for k, (i, res) in enumerate(zip(idx, results, strict=True)):
-            yield FrameRecord(i + 1, imgs[k], imgs[k + 1], flow_fwd[k], flow_bwd[k], depth[k], res, share,
-                              None if depth_next is None else depth_next[k])
+    prev_img: torch.Tensor | None = None
+    pending: Future | None = None
+    try:
+        for b, idx in enumerate(batches):
+            n = len(idx)
+            loaded = loader.get(b).to(device, non_blocking=True)
+            imgs = loaded if prev_img is None else torch.cat([prev_img, loaded])
+            prev_img = imgs[-1:]
+            if finetuner is not None and finetuner.active:
+                with timer("finetune"):
+                    for k in range(n):
+                        finetuner.step(*flow_src.network_inputs(imgs[k:k + 1], imgs[k + 1:k + 2]))
+            with timer("flow"):
+                flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)
+            with timer("depth"):
+                depth_next = None
+                if two_views:
+                    later = depth_src(imgs[1:], [i + 1 for i in idx])
+                    first_depth = depth_src(imgs[:1], idx[:1]) if depth_carry is None else depth_carry
+                    depth = torch.cat([first_depth, later[:-1]])
+                    depth_next, depth_carry = later, later[-1:]
+                else:
+                    depth = depth_src(imgs[:-1], idx)
+            share = {"t_flow": timer.last["flow"] / n, "t_refine": 0.0, "t_depth": timer.last["depth"] / n,
+                     "t_tracker": 0.0}
+            work = _Batch(idx, imgs, flow_fwd, flow_bwd, depth, depth_next, share)
+            if tracker_pool is None:
+                refine_flows(work)
+                yield from records(*track(work))
+                continue
+            if pending is not None:
+                with timer("wait_tracker"):
+                    done = pending.result()
+                pending = None
+                yield from records(*done)
+            pending = tracker_pool.submit(track, work)
+        if pending is not None:
+            with timer("wait_tracker"):
+                done = pending.result()
+            pending = None
+            yield from records(*done)
+    finally:
+        loader.close()
+        if tracker_pool is not None:
+            tracker_pool.shutdown(wait=True, cancel_futures=True)
+        torch.set_num_threads(threads)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import signal
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -119,7 +120,7 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
     extra = {"sources": {"flow": flow_src.name, "depth": depth_src.name,
                          "flow_checkpoint": str(getattr(flow_src, "checkpoint", "")) or None,
                          "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None,
-                         "flow_refinement": None if refine is None else vars(refine)},
+                         "flow_refinement": None if refine is None else asdict(refine)},
              "online_finetune": finetuner is not None, "device": device}
     return _run(icfg, seq, flow_src, depth_src, refine, finetuner, observers, out, device, extra)
 

@@ -1,12 +1,35 @@
-"""Wall-clock time per stage of a run (``with timer("flow"): ...``), for ``summary.json`` and ``frames.csv``."""
+"""Wall-clock time per stage of a run (``with timer("flow"): ...``), for ``summary.json`` and ``frames.csv``.
+
+Stages may run in different threads (the inference loop decodes frames and runs the tracker in background threads
+while the networks run): ``add`` is thread-safe, and the per-stage totals then overlap, so their sum can exceed the
+run's wall time. ``wait_*`` stages are the time the main thread spent blocked on a background stage.
+
+Each stage also accumulates the process's CPU time (``time.process_time``: every thread of the process, torch's
+OpenMP workers included) while it ran: on a shared machine the wall time follows the neighbours' load and the CPU
+time the work. With stages in several threads at once (``overlap="full"``) a stage's CPU time also counts what the
+other threads did meanwhile; compare CPU times in the serial loop (``overlap="none"`` or ``"load"``).
+"""
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["StageTimer"]
+import torch
+
+__all__ = ["StageTimer", "CUDA_SYNC", "cuda_sync"]
+
+CUDA_SYNC = False
+"""Synchronise CUDA at every stage boundary, so a stage's time is its GPU work (benchmarks set it for per-stage GPU
+times; it serialises the GPU with the host, so runs with it are slower: measure FPS without it)."""
+
+
+def cuda_sync() -> None:
+    """``torch.cuda.synchronize()`` when :data:`CUDA_SYNC` is set (and CUDA is available); else nothing."""
+    if CUDA_SYNC and torch.cuda.is_available():
+        torch.cuda.synchronize()
 
 
 class StageTimer:
@@ -14,22 +37,36 @@ class StageTimer:
 
     def __init__(self) -> None:
         self.total: dict[str, float] = {}
+        self.cpu_total: dict[str, float] = {}
         self.last: dict[str, float] = {}
+        self._lock = threading.Lock()
 
     @contextmanager
     def __call__(self, name: str) -> Iterator[None]:
-        """Time the block as stage ``name``."""
-        start = time.perf_counter()
+        """Time the block as stage ``name`` (wall and process CPU time)."""
+        cuda_sync()
+        start, cpu = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
-            self.add(name, time.perf_counter() - start)
+            cuda_sync()
+            self.add(name, time.perf_counter() - start, time.process_time() - cpu)
 
-    def add(self, name: str, seconds: float) -> None:
-        """Add ``seconds`` to stage ``name``."""
-        self.total[name] = self.total.get(name, 0.0) + seconds
-        self.last[name] = seconds
+    def add(self, name: str, seconds: float, cpu_seconds: float | None = None) -> None:
+        """Add ``seconds`` of wall time (and ``cpu_seconds`` of process CPU time, if known) to stage ``name`` (from
+        any thread)."""
+        with self._lock:
+            self.total[name] = self.total.get(name, 0.0) + seconds
+            self.last[name] = seconds
+            if cpu_seconds is not None:
+                self.cpu_total[name] = self.cpu_total.get(name, 0.0) + cpu_seconds
 
     def ms_per_frame(self, frames: int) -> dict[str, float]:
-        """Milliseconds per frame of every stage."""
-        return {k: 1000.0 * v / max(frames, 1) for k, v in self.total.items()}
+        """Milliseconds of wall time per frame of every stage."""
+        with self._lock:
+            return {k: 1000.0 * v / max(frames, 1) for k, v in self.total.items()}
+
+    def cpu_ms_per_frame(self, frames: int) -> dict[str, float]:
+        """Milliseconds of process CPU time per frame of every stage that measured it (see the module docstring)."""
+        with self._lock:
+            return {k: 1000.0 * v / max(frames, 1) for k, v in self.cpu_total.items()}

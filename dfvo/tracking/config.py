@@ -164,6 +164,8 @@ class ScaleConfig:
             paper). ``infer.py`` fills it from ``data.camera_height`` when null (KITTI's dataset configs set 1.65;
             ``data.camera_height=null`` turns it off there): KITTI 06 RPE 0.071 -> 0.038 m with ``temporal``
             (docs/scale.md).
+        camera_height_from_data: false: ``data.camera_height`` is not used (``experiment=paper`` sets it; an explicit
+            ``camera_height`` still is).
         temporal: fuse the scale over time (:mod:`dfvo.tracking.scale_filter`, settings in ``tracker.scale_filter``):
             the three-frame relative scale predicts each pair's length from the previous one, the absolute
             observations correct it; a frame whose scale observations fail keeps the prediction. false: per-frame
@@ -185,6 +187,7 @@ class ScaleConfig:
     max_depth: float = 50.0
     depth_crop_top: float = 0.3
     camera_height: float | None = None
+    camera_height_from_data: bool = True
     temporal: bool = True
 
     def __post_init__(self) -> None:

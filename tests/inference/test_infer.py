@@ -169,6 +169,11 @@ def test_tracker_node_is_typed_and_unknown_settings_are_errors() -> None:
         TrackerMode.e, SelectionMethod.best_n, ScaleMethod.iterative, [4, 5])
     assert tc.scale.depth_views == 2  # the default infer.py runs, written once in the dataclass
     assert typed(compose_infer("experiment=paper")).tracker.scale.depth_views == 1
+    for overrides in (("experiment=paper", "seq=06"), ("data=kitti_odom", "data.root=x", "experiment=paper")):
+        paper = typed(compose_infer(*overrides))  # every addition of ours off, KITTI's camera height included
+        assert (paper.tracker.scale.camera_height, paper.tracker.scale.temporal, paper.tracker.gate.enabled,
+                paper.flow.refine.iterations) == (None, False, False, 0)
+    assert typed(compose_infer("seq=06")).tracker.scale.camera_height == 1.65  # seq=NN alone is KITTI odometry
     with pytest.raises((ConfigCompositionException, ConfigKeyError), match="selction_method"):
         compose_infer("tracker.correspondence.selction_method=best_n")
     with pytest.raises(ConfigCompositionException):

@@ -1,0 +1,159 @@
+"""The inference loop: its overlap modes (serial; loader thread; loader and tracker threads) give the same poses for
+any batch size; frames are decoded once each, in the background unless serial; refinement is applied to the
+network-like flow; an early stop or a tracker error leaves no thread behind; an unknown mode is one clear error."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from dfvo.data.synthetic import SyntheticWorld
+from dfvo.inference.frames import FrameSequence
+from dfvo.inference.loop import track_sequence
+from dfvo.inference.timing import StageTimer
+from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
+from dfvo.tracking import VisualOdometry
+
+H, W, N = 64, 224, 9
+
+
+class _CachedSources:
+    """Flow (true flow + a smooth 1 px perturbation, like a network's) and true depth of a synthetic world,
+    rendered once; it reads no images, so the sequence it serves needs no world."""
+
+    name = "network"
+
+    def __init__(self, world: SyntheticWorld) -> None:
+        g = torch.Generator().manual_seed(0)
+        noise = [F.interpolate(torch.randn(1, 2, 4, 12, generator=g), size=(H, W), mode="bilinear")[0]
+                 for _ in range(2 * N)]
+        self.fwd = {i: world.flow(i, i + 1)[0] + noise[2 * i] for i in range(N - 1)}
+        self.bwd = {i: world.flow(i + 1, i)[0] + noise[2 * i + 1] for i in range(N - 1)}
+        self.depth = {i: world.depth(i) for i in range(N)}
+        self.flow_calls: list[list[int]] = []
+
+    def __call__(self, prev: torch.Tensor, cur: torch.Tensor, indices: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        self.flow_calls.append(list(indices))
+        return torch.stack([self.fwd[i] for i in indices]), torch.stack([self.bwd[i] for i in indices])
+
+    def depth_source(self) -> object:
+        src = self
+
+        class _Depth:
+            name = "oracle"
+
+            def __call__(self, images: torch.Tensor, indices: list[int]) -> torch.Tensor:
+                return torch.stack([src.depth[i] for i in indices])
+
+        return _Depth()
+
+
+@pytest.fixture(scope="module")
+def world_data() -> tuple[FrameSequence, _CachedSources]:
+    world = SyntheticWorld(seed=2, num_frames=N, height=H, width=W, scenario="drive")
+    images = [world.image(i) for i in range(N)]
+    seq = FrameSequence("loop_test", N, world.intrinsics().float(), lambda i: images[i].clone(),
+                        world.poses().numpy())
+    return seq, _CachedSources(world)
+
+
+def _run(seq: FrameSequence, src: _CachedSources, batch: int, overlap: str | bool, refine: FlowRefinementConfig | None,
+         timer: StageTimer | None = None) -> list:
+    return list(track_sequence(seq, src, src.depth_source(), VisualOdometry(), refine=refine, batch_size=batch,
+                               timer=timer or StageTimer(), overlap=overlap))
+
+
+def _dfvo_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("dfvo-") and t.is_alive()]
+
+
+def test_overlap_and_batch_size_do_not_change_the_poses(world_data: tuple) -> None:
+    seq, src = world_data
+    refine = FlowRefinementConfig()
+    timer = StageTimer()
+    ref = _run(seq, src, 1, "none", refine)
+    assert [r.index for r in ref] == list(range(1, N))
+    for batch, overlap in ((1, "full"), (3, "full"), (4, False), (8, "load"), (2, True)):
+        out = _run(seq, src, batch, overlap, refine, timer if batch == 3 else None)
+        assert [r.index for r in out] == list(range(1, N))
+        for a, b in zip(ref, out, strict=True):
+            torch.testing.assert_close(b.result.T_w_cur, a.result.T_w_cur, atol=1e-9, rtol=0)
+            assert b.result.diagnostics.tracker == a.result.diagnostics.tracker
+            assert b.result.diagnostics.num_inliers == a.result.diagnostics.num_inliers
+    # the tracker worked on the refined flows: every frame tracked (no constant motion), close to the truth
+    assert all(r.result.diagnostics.tracker.value in ("E", "PnP") for r in ref)
+    true = torch.from_numpy(np.linalg.inv(seq.poses[0]) @ seq.poses[-1])
+    assert float((ref[-1].result.T_w_cur[:3, 3] - true[:3, 3]).norm()) < 0.1 * float(true[:3, 3].norm())
+    assert {"load", "flow", "refine", "depth", "tracker", "wait_load", "wait_tracker"} <= set(timer.total)
+    assert all(r.stage_seconds["t_tracker"] > 0 for r in out)
+
+
+def test_the_tracker_gets_the_refined_flows(world_data: tuple) -> None:
+    seq, src = world_data
+    refine = FlowRefinementConfig()
+    out = _run(seq, src, 4, True, refine)
+    images = torch.stack([seq.image(i) for i in range(5)])
+    fwd, bwd = refine_consecutive(images, torch.stack([src.fwd[i] for i in range(4)]),
+                                  torch.stack([src.bwd[i] for i in range(4)]), refine)
+    torch.testing.assert_close(torch.stack([r.flow_fwd for r in out[:4]]), fwd)
+    torch.testing.assert_close(torch.stack([r.flow_bwd for r in out[:4]]), bwd)
+    unrefined = _run(seq, src, 4, True, None)
+    assert torch.equal(unrefined[0].flow_fwd, src.fwd[0])
+    # a 1 px error passes the 0.1 px forward-backward test nowhere: unrefined, the selection fails
+    assert all(r.result.diagnostics.selection_failed for r in unrefined)
+    assert not any(r.result.diagnostics.selection_failed for r in out)
+    assert out[0].stage_seconds["t_refine"] > 0 and unrefined[0].stage_seconds["t_refine"] == 0
+
+
+def test_frames_are_decoded_once_each_in_the_loader_thread(world_data: tuple) -> None:
+    seq, src = world_data
+    calls: list[tuple[int, str]] = []
+
+    def load(i: int) -> torch.Tensor:
+        calls.append((i, threading.current_thread().name))
+        return seq.load(i)
+
+    for mode in ("load", "full"):
+        calls.clear()
+        timer = StageTimer()
+        _run(replace(seq, load=load), src, 3, mode, None, timer)
+        assert sorted(i for i, _ in calls) == list(range(N))
+        assert all(name.startswith("dfvo-load") for _, name in calls)
+        assert ("wait_tracker" in timer.total) == (mode == "full")
+    calls.clear()
+    _run(replace(seq, load=load), src, 3, "none", None)
+    assert sorted(i for i, _ in calls) == list(range(N))
+    assert all(name == threading.current_thread().name for _, name in calls)
+
+
+def test_early_stop_and_tracker_errors_leave_no_thread(world_data: tuple) -> None:
+    seq, src = world_data
+    threads = torch.get_num_threads()
+    gen = track_sequence(seq, src, src.depth_source(), VisualOdometry(), refine=None, batch_size=2,
+                         timer=StageTimer(), overlap=True)
+    first = next(gen)
+    assert first.index == 1 and _dfvo_threads()
+    gen.close()
+    assert not _dfvo_threads()
+    assert torch.get_num_threads() == threads  # "full" halves the torch threads during the loop only
+
+    class Broken(VisualOdometry):
+        def run(self, *args: object, **kwargs: object) -> list:
+            raise RuntimeError("tracker exploded")
+
+    with pytest.raises(RuntimeError, match="tracker exploded"):
+        list(track_sequence(seq, src, src.depth_source(), Broken(), refine=None, batch_size=2, timer=StageTimer(),
+                            overlap=True))
+    assert not _dfvo_threads()
+
+
+def test_an_unknown_overlap_mode_is_one_clear_error(world_data: tuple) -> None:
+    seq, src = world_data
+    with pytest.raises(ValueError, match=r"overlap='both'; expected one of \('none', 'load', 'full'\)"):
+        _run(seq, src, 2, "both", None)
+    assert not _dfvo_threads()
