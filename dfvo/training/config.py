@@ -8,7 +8,8 @@ the ``__post_init__`` checks run when a node becomes its dataclass (:func:`typed
 is built. ``python train.py --cfg job`` prints the composed configuration with every default.
 
 ``register_configs()`` stores the schemas in Hydra's ConfigStore (``train_schema`` for the root, ``model/schema/KIND``,
-``data/schema/KIND`` and ``trainer/schema/trainer`` for the groups); it runs on import of this module.
+``data/train_schema/KIND`` and ``trainer/schema/trainer`` for the groups; not ``data/schema``, where the inference
+schemas are: both can be registered in one process); it runs on import of this module.
 
 The data schemas (one per kind, and :func:`data_root`: ``data.root=`` or the kind's environment variable, never a
 path derived from the repository layout) live in :mod:`dfvo.training.data_config` and are re-exported here.
@@ -283,7 +284,7 @@ def register_configs() -> None:
     for task, schema in MODEL_SCHEMAS.items():
         cs.store(group="model/schema", name=task, node=schema)
     for kind, schema in DATA_SCHEMAS.items():
-        cs.store(group="data/schema", name=kind, node=schema)
+        cs.store(group="data/train_schema", name=kind, node=schema)
     cs.store(group="trainer/schema", name="trainer", node=TrainerConfig)
 
 

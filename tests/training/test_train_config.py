@@ -36,7 +36,7 @@ def _base(group: str, name: str):
     for entry in _raw(group, name)["defaults"]:
         if entry == "_self_":
             continue
-        if entry.startswith("schema/"):
+        if entry.startswith(("schema/", "train_schema/")):
             node = OmegaConf.merge(node, OmegaConf.structured(SCHEMAS[group][entry.split("/")[1].split("@")[0]]))
         else:
             node = OmegaConf.merge(node, _full(group, entry))
@@ -71,6 +71,21 @@ def test_every_yaml_is_a_schema_plus_only_the_diff(group: str) -> None:
         for key, value in _flat({k: v for k, v in raw.items() if k != "defaults"}).items():
             assert OmegaConf.select(base, key) != value, f"{group}/{name}.yaml repeats {key}={value}"
         assert "shared" not in text and "${dfvo_repo" not in text, f"{group}/{name}.yaml assumes the repo layout"
+
+
+def test_training_and_inference_schemas_coexist_in_one_process() -> None:
+    """Both entry points register data schemas in Hydra's one ConfigStore; registering the inference ones last must
+    not change what the training config composes into (nor the reverse). Seen in CI: the training data nodes had
+    become the inference dataclasses, whatever registered last."""
+    from dfvo.inference.config import KittiRawDataConfig as InferKittiRaw
+    from dfvo.inference.config import register_configs as register_infer
+
+    C.register_configs()
+    register_infer()
+    cfg = _compose("data=kitti_raw", "data.height=64")
+    assert OmegaConf.get_type(cfg.data) is C.KittiRawDataConfig and cfg.data.height == 64
+    with initialize_config_module("dfvo.conf.infer", version_base="1.3"):
+        assert OmegaConf.get_type(compose("infer", overrides=["data=kitti_raw"]).data) is InferKittiRaw
 
 
 def test_groups_compose_into_their_schemas() -> None:
