@@ -11,7 +11,7 @@
 # SEEDS (synthetic worlds 0..SEEDS-1, seed s gets scenario s % 4), FRAMES (frames per world), W_SUP (supervised weight),
 # TIME_LIMIT (seconds, 570), INIT (initial weights; empty: random init), KITTI_ODOM (KITTI odometry root for the
 # benchmark; empty: skip it), EVAL (1: run the benchmark), TRAIN_CMD (the training command, default "python train.py").
-# The CPU recipe (what produced the candidate of the model card) is in dfvo/checkpoints/README.md.
+# The CPU recipe of the 2026-12-01 candidates (not shipped) and their numbers are in dfvo/checkpoints/README.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
