@@ -44,6 +44,26 @@ def compose(rel: np.ndarray) -> np.ndarray:
     return np.stack(out)
 
 
+def scale_free(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Split a prediction's relative motion into what the flow did and what the scale did.
+
+    Args:
+        gt, pred: (N,4,4) T_w_k of the same frames.
+
+    Returns:
+        ``(true_lengths, moving, direction_deg, length_ratio)``: the prediction with every relative translation
+        rescaled to the true length (N,4,4); which of the N-1 pairs moved (true translation > 1 mm); per moving pair
+        the angle between predicted and true translation (degrees) and predicted / true length.
+    """
+    rg, rp = relative(gt), relative(pred)
+    lg, lp = np.linalg.norm(rg[:, :3, 3], axis=1), np.linalg.norm(rp[:, :3, 3], axis=1)
+    moving = lg > 1e-3
+    fixed = rp.copy()
+    fixed[moving, :3, 3] *= (lg[moving] / np.maximum(lp[moving], 1e-12))[:, None]
+    cos = np.einsum("ij,ij->i", rg[moving, :3, 3], rp[moving, :3, 3]) / np.maximum(lg[moving] * lp[moving], 1e-12)
+    return compose(fixed), moving, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), lp[moving] / lg[moving]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--gt", required=True, help="trajectory file of the ground truth")
@@ -61,14 +81,7 @@ def main() -> None:
     if np.any(np.diff(rows) > 1):
         raise SystemExit(f"{args.pred}: the predicted frames are not consecutive ({assoc.describe()})")
     gt, pred = assoc.gt[rows], assoc.pred[rows]
-    rg, rp = relative(gt), relative(pred)
-    lg, lp = np.linalg.norm(rg[:, :3, 3], axis=1), np.linalg.norm(rp[:, :3, 3], axis=1)
-    moving = lg > 1e-3
-    fixed = rp.copy()
-    fixed[moving, :3, 3] *= (lg[moving] / np.maximum(lp[moving], 1e-12))[:, None]
-    cos = np.einsum("ij,ij->i", rg[moving, :3, 3], rp[moving, :3, 3]) / np.maximum(lg[moving] * lp[moving], 1e-12)
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    ratio = lp[moving] / lg[moving]
+    true_lengths, _, angle, ratio = scale_free(gt, pred)
 
     def summary(traj: np.ndarray) -> dict[str, float]:
         m = evaluate_trajectory(gt, traj, align=args.align)
@@ -76,7 +89,7 @@ def main() -> None:
 
     print(json.dumps({
         "gt": args.gt, "pred": args.pred, "align": args.align, "frames": len(gt), "pairing": assoc.describe(),
-        "as_run": summary(pred), "true_lengths": summary(compose(fixed)),
+        "as_run": summary(pred), "true_lengths": summary(true_lengths),
         "length_ratio": {"mean": round(float(ratio.mean()), 4), "median": round(float(np.median(ratio)), 4),
                          "std": round(float(ratio.std()), 4),
                          "lag1_autocorrelation": (round(float(np.corrcoef(ratio[:-1], ratio[1:])[0, 1]), 4)

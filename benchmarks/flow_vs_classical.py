@@ -47,7 +47,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from error_decomposition import compose, relative  # noqa: E402
+from error_decomposition import relative, scale_free  # noqa: E402
 from kitti_flow_quality import fundamental_from_pose  # noqa: E402
 
 from dfvo.data.synthetic import held_out_worlds  # noqa: E402
@@ -143,12 +143,7 @@ def trajectory_metrics(gt: np.ndarray, pred: np.ndarray, per_frame: bool = False
     """RPE/ATE as run and with true lengths; per-frame direction and rotation errors (degrees), and with
     ``per_frame`` each frame's (direction error (NaN when still), rotation error, length ratio)."""
     rg, rp = relative(gt), relative(pred)
-    lg, lp = np.linalg.norm(rg[:, :3, 3], axis=1), np.linalg.norm(rp[:, :3, 3], axis=1)
-    moving = lg > 1e-3
-    fixed = rp.copy()
-    fixed[moving, :3, 3] *= (lg[moving] / np.maximum(lp[moving], 1e-12))[:, None]
-    cos = np.einsum("ij,ij->i", rg[moving, :3, 3], rp[moving, :3, 3]) / np.maximum(lg[moving] * lp[moving], 1e-12)
-    direction = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    true_lengths, moving, direction, ratio = scale_free(gt, pred)
     dR = np.einsum("nji,njk->nik", rg[:, :3, :3], rp[:, :3, :3])
     rotation = np.degrees(np.arccos(np.clip((np.trace(dR, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)))
 
@@ -156,7 +151,6 @@ def trajectory_metrics(gt: np.ndarray, pred: np.ndarray, per_frame: bool = False
         r = evaluate_trajectory(gt, traj, align="6dof")
         return {"rpe_m": round(r["rpe_m"], 4), "rpe_deg": round(r["rpe_deg"], 4), "ate_m": round(r["ate_m"], 4)}
 
-    ratio = lp[moving] / lg[moving]
     extra = {}
     if per_frame:
         d_all = np.full(len(rg), np.nan)
@@ -166,7 +160,7 @@ def trajectory_metrics(gt: np.ndarray, pred: np.ndarray, per_frame: bool = False
         extra["per_frame"] = {"direction_deg": [round(float(v), 3) for v in d_all],
                               "rotation_deg": [round(float(v), 4) for v in rotation],
                               "length_ratio": [round(float(v), 3) for v in r_all]}
-    return {**extra, "as_run": m(pred), "true_lengths": m(compose(fixed)), "direction_error_deg": _stats(direction),
+    return {**extra, "as_run": m(pred), "true_lengths": m(true_lengths), "direction_error_deg": _stats(direction),
             "rotation_error_deg": _stats(rotation, 4),
             "length_ratio": {"median": round(float(np.median(ratio)), 4) if len(ratio) else None,
                              "std": round(float(np.std(ratio)), 4) if len(ratio) else None}}

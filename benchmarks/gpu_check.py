@@ -46,17 +46,16 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 import dfvo.inference.loop as loop  # noqa: E402
 import dfvo.inference.timing as timing  # noqa: E402
 from dfvo.inference.config import typed  # noqa: E402
-from dfvo.inference.pipeline import run_inference  # noqa: E402
+from dfvo.inference.pipeline import resolve_device, run_inference  # noqa: E402
 
 DEFAULT_KITTI = REPO.parent / "shared" / "data" / "kitti_odom"
 
 
 def _device(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise SystemExit(f"--device {name}: torch {torch.__version__} sees no CUDA device; use --device cpu")
-    return name
+    try:
+        return resolve_device(name)
+    except ValueError as err:
+        raise SystemExit(f"--device {name}: {err}") from None
 
 
 def _sync(device: str) -> None:

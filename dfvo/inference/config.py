@@ -251,10 +251,10 @@ class InferConfig:
             raise ValueError(f"batch_size={self.batch_size}; expected a positive number of frame pairs")
         height = self.data.get("camera_height") if isinstance(self.data, DictConfig) else \
             getattr(self.data, "camera_height", None)
-        from dfvo.inference.frames import KITTI_ODOM_SEQ
+        from dfvo.inference.frames import selects_kitti_odometry
 
         kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)
-        if kind == "synthetic" and self.seq is not None and KITTI_ODOM_SEQ.match(str(self.seq)):
+        if selects_kitti_odometry(kind, self.seq):
             height = KittiOdomDataConfig.camera_height  # `seq=NN` alone runs KITTI odometry (frames.resolve_data)
         if height is not None and self.tracker.scale.camera_height is None and \
                 self.tracker.scale.camera_height_from_data:  # the dataset's camera height

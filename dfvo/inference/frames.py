@@ -33,6 +33,12 @@ KITTI_ODOM_SEQ = re.compile(r"^\d{1,2}$")
 SYNTHETIC_FRAME_PERIOD_S = 0.1  # the synthetic camera runs at KITTI's 10 Hz
 
 
+def selects_kitti_odometry(kind: str | None, seq: str | int | None) -> bool:
+    """Whether ``seq`` alone turns the default synthetic data into KITTI odometry (``seq=10``: a sequence number,
+    where the synthetic world's sequences are scenario names)."""
+    return kind == "synthetic" and seq is not None and bool(KITTI_ODOM_SEQ.match(str(seq)))
+
+
 def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
     """The dataset config and sequence name a run uses.
 
@@ -55,7 +61,7 @@ def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
     from dfvo.inference.config import KittiOdomDataConfig
 
     name = None if seq is None else str(seq)
-    if data.kind == "synthetic" and name is not None and KITTI_ODOM_SEQ.match(name):
+    if selects_kitti_odometry(data.kind, name):
         data = KittiOdomDataConfig(start=data.start, end=data.end)
     name = name if name is not None else data.seq
     if data.kind == "kitti_odom" and name is not None and name.isdigit():

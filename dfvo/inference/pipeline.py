@@ -53,7 +53,12 @@ def job_output_dir(cfg: InferConfig) -> Path:
     return prepare_out_dir(cfg.out_dir)
 
 
-def _device(name: str) -> str:
+def resolve_device(name: str) -> str:
+    """``auto`` -> ``cuda`` when torch sees a CUDA device, else ``cpu``; other names as given.
+
+    Raises:
+        ValueError: a ``cuda`` device asked for where torch sees none (one line saying what to use instead).
+    """
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     if name.startswith("cuda") and not torch.cuda.is_available():
@@ -100,7 +105,7 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
     out = prepare_out_dir(job_output_dir(icfg))  # before the (slow) sources: a bad out_dir fails at once
     if icfg.num_threads:
         torch.set_num_threads(int(icfg.num_threads))
-    device = _device(icfg.device)
+    device = resolve_device(icfg.device)
     seq = build_sequence(typed(icfg.data) if isinstance(icfg.data, DictConfig) else icfg.data, icfg.seq,
                          icfg.img_res)
     if seq.length < 2:
