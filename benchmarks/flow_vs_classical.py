@@ -20,7 +20,9 @@ and rotation errors (median/mean/max, degrees), the predicted / true translation
 scale's error), the Sampson distance of the tracker's selected correspondences
 under the true relative pose (pixels: median, p90, share above 1 px; pairs with < 0.1 m true translation skipped),
 the trackers used (E / PnP / constant motion) and flow milliseconds per frame (network and refinement; wall time
-and this thread's CPU time — the CPU is shared, wall time includes waiting for it). Prints one JSON object (also
+and this thread's CPU time — the CPU is shared, wall time includes waiting for it). ``--kitti-steps 1,2,3`` adds the
+same KITTI frames taken every 2nd and 3rd frame (2.4 and 3.6 m a frame on 06: highway-speed image motion on a road
+with ground truth; cases ``kitti06_step2``, ``kitti06_step3``). Prints one JSON object (also
 written to ``--out``). The network, its raw flow and the depth of a case are computed once and shared by its runs.
 ``--quick`` checks the whole path in a few minutes (KITTI frames 0-10, one drive and one highway world of 8 frames,
 network depth only); its numbers are too few frames to compare flows by.
@@ -270,6 +272,8 @@ def main() -> None:
     p.add_argument("--kitti-root", default=str(Path(__file__).resolve().parents[2] / "shared/data/kitti_odom"))
     p.add_argument("--seq", default="06")
     p.add_argument("--kitti-frames", type=int, default=None, help="only KITTI frames [0, N) (default: all)")
+    p.add_argument("--kitti-steps", default="1", help="KITTI frame steps, one case each (e.g. 1,2,3: every 2nd and "
+                   "3rd frame of the same road doubles and triples the motion per frame, a highway-speed stand-in)")
     p.add_argument("--scenarios", default="drive,city,straight,highway")
     p.add_argument("--per-scenario", type=int, default=1, help="held-out worlds per scenario (seeds 1000, 1001..)")
     p.add_argument("--synthetic-frames", type=int, default=40)
@@ -309,9 +313,10 @@ def main() -> None:
     started = time.time()
     if not args.skip_kitti:
         first = [] if args.kitti_frames is None else ["data.start=0", f"data.end={args.kitti_frames}"]
-        cases[f"kitti{args.seq}"] = run_case(f"kitti{args.seq}", ["data=kitti_odom", f"data.root={args.kitti_root}",
-                                                                  f"seq={args.seq}", *first, *common],
-                                             flows, ["network"], args, pyramids)
+        for step in (int(v) for v in args.kitti_steps.split(",")):
+            name = f"kitti{args.seq}" + ("" if step == 1 else f"_step{step}")
+            cases[name] = run_case(name, ["data=kitti_odom", f"data.root={args.kitti_root}", f"seq={args.seq}",
+                                          *first, f"data.step={step}", *common], flows, ["network"], args, pyramids)
     if not args.skip_synthetic:
         for world in held_out_worlds(args.scenarios.split(","), args.per_scenario):
             speed = "null" if world.speed is None else (f"{world.speed}" if isinstance(world.speed, float)
