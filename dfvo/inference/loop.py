@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import torch
 
 from dfvo.data.sequence import FrameSequence
-from dfvo.inference.timing import StageTimer, cuda_sync
+from dfvo.inference.timing import StageTimer
 from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.tracking import FrameResult, VisualOdometry
@@ -165,28 +165,20 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
     def refine_flows(work: _Batch) -> None:
         if refine is None:
             return
-        cuda_sync()
-        start, cpu = time.perf_counter(), time.process_time()
-        work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
-        cuda_sync()
-        seconds = time.perf_counter() - start
-        timer.add("refine", seconds, time.process_time() - cpu)
-        work.share["t_refine"] = seconds / len(work.idx)
+        with timer("refine"):  # only this thread refines: last["refine"] is this call's
+            work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
+        work.share["t_refine"] = timer.last["refine"] / len(work.idx)
 
     def track(work: _Batch) -> tuple[_Batch, list[FrameResult]]:
         if mode == "full":  # the refinement runs in the tracker thread, beside the next batch's networks
             refine_flows(work)
-        cuda_sync()
-        start, cpu = time.perf_counter(), time.process_time()
         n = len(work.idx)
-        results = vo.run(work.flow_fwd, work.flow_bwd, work.depth, K.expand(n, 3, 3), batch_size=n,
-                         depths_next=work.depth_next)
-        cuda_sync()
-        seconds = time.perf_counter() - start
-        timer.add("tracker", seconds, time.process_time() - cpu)
+        with timer("tracker"):  # only this thread tracks: last["tracker"] is this call's
+            results = vo.run(work.flow_fwd, work.flow_bwd, work.depth, K.expand(n, 3, 3), batch_size=n,
+                             depths_next=work.depth_next)
         for part in ("selection", "e_tracker", "sequential"):  # the tracker's own split of its time
             timer.add(f"tracker_{part}", sum(getattr(r.diagnostics, f"time_{part}", 0.0) for r in results))
-        work.share["t_tracker"] = seconds / n
+        work.share["t_tracker"] = timer.last["tracker"] / n
         return work, results
 
     def records(work: _Batch, results: list[FrameResult]) -> Iterator[FrameRecord]:
