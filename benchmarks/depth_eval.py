@@ -25,8 +25,8 @@ import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
 
-from dfvo.data.synthetic import SyntheticSequenceDataset
 from dfvo.eval.depth_metrics import compute_depth_metrics
+from dfvo.synthetic import SyntheticSequenceDataset
 from dfvo.training.depth_module import DepthPoseModule
 
 

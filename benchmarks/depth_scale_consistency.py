@@ -97,7 +97,7 @@ def kitti_records(root: str, seq: str, height: int, width: int, flow_src: Networ
 def synthetic_records(scenario: str, per_scenario: int, num_frames: int, height: int, width: int,
                       flow_src: NetworkFlow) -> list[dict]:
     """Frames of the held-out worlds of ``scenario`` with the exact depth at their correspondences (sky excluded)."""
-    from dfvo.data.synthetic import SKY_DEPTH, held_out_worlds
+    from dfvo.synthetic import SKY_DEPTH, held_out_worlds
 
     records = []
     for spec in held_out_worlds([scenario], per_scenario):
@@ -198,7 +198,7 @@ def main() -> None:
     size = None if args.depth_input_size is None else [int(v) for v in args.depth_input_size.split(",")]
     depth_src = NetworkDepth(args.depth, input_size=size, flip_average=args.flip_average)
     if args.synthetic:
-        from dfvo.data.synthetic import TRAINING_SCENARIOS
+        from dfvo.synthetic import TRAINING_SCENARIOS
         scenarios = list(TRAINING_SCENARIOS) if args.synthetic == "all" else args.synthetic.split(",")
         key = {"synthetic": scenarios, "worlds": args.worlds_per_scenario, "frames": args.num_frames}
     else:

@@ -52,7 +52,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from error_decomposition import relative, scale_free  # noqa: E402
 from kitti_flow_quality import fundamental_from_pose  # noqa: E402
 
-from dfvo.data.synthetic import held_out_worlds  # noqa: E402
 from dfvo.eval import evaluate_trajectory  # noqa: E402
 from dfvo.geometry.two_view import sampson_sq  # noqa: E402
 from dfvo.inference.config import typed  # noqa: E402
@@ -64,6 +63,7 @@ from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, refine_pyr
 from dfvo.sources import build_depth_source  # noqa: E402
 from dfvo.sources.dis import DISFlow  # noqa: E402
 from dfvo.sources.networks import NetworkFlow  # noqa: E402
+from dfvo.synthetic import held_out_worlds  # noqa: E402
 from dfvo.tracking import VisualOdometry  # noqa: E402
 
 FLOWS = ("network", "network_raw", "dis", "network_pyramid")

@@ -70,7 +70,7 @@ class DataConfig:
 
 @dataclass
 class SyntheticDataConfig(DataConfig):
-    """The built-in synthetic world (:class:`dfvo.data.synthetic.SyntheticWorld`); ``seq`` is the scenario (drive,
+    """The built-in synthetic world (:class:`dfvo.synthetic.SyntheticWorld`); ``seq`` is the scenario (drive,
     city, straight, highway, still, rotation, planar, moving_car); ``speed`` (metres per frame, a value or a
     ``[low, high]`` range drawn per world; null: the scenario's default) and ``turn_rate`` (degrees per frame, the
     same) reshape the street scenarios. Seeds >= 1000 are never used for training (held-out worlds)."""

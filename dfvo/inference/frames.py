@@ -4,7 +4,7 @@ at the working size.
 Convention (of the sequence):
     ``FrameSequence.image(i)`` is (3,H,W) float in [0,1] at the working resolution, ``K`` (3,3) in its pixels,
     ``poses`` (N,4,4) float64 ``T_w_c`` of the left camera when ground truth exists (else None), ``world`` the
-    :class:`~dfvo.data.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it), ``timestamps``
+    :class:`~dfvo.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it), ``timestamps``
     (N,) float64 seconds of each frame when the dataset has them (else None), ``frame_ids`` (N,) the frames'
     indices in the dataset's own list when a range or step selected them (else None).
 """
@@ -136,7 +136,7 @@ def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSeque
         raise ValueError(f"data.kind={data.kind!r}; expected one of {tuple(DATA_SCHEMAS)}")
     data, name = resolve_data(data, seq)
     if data.kind == "synthetic":  # rendered at the working size directly
-        from dfvo.data.synthetic import KITTI_HW
+        from dfvo.synthetic import KITTI_HW
         return _synthetic(data, name, working_hw(img_res, KITTI_HW))
     opened = _open_native(data, name)
     return at_working_size(opened, working_hw(img_res, tuple(opened.image(0).shape[-2:])))
@@ -205,7 +205,7 @@ def _folder(data: Any, name: str | None, sel: slice) -> FrameSequence:
 
 
 def _synthetic(data: Any, scenario: str | None, hw: tuple[int, int]) -> FrameSequence:
-    from dfvo.data.synthetic import SyntheticWorld
+    from dfvo.synthetic import SyntheticWorld
     scenario = scenario or "drive"
     world = SyntheticWorld(seed=data.seed, num_frames=data.num_frames, height=hw[0], width=hw[1],
                            exposure_change=data.exposure_change, noise_std=data.noise_std, scenario=scenario,

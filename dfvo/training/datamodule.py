@@ -88,7 +88,7 @@ class DFVODataModule(L.LightningDataModule):
                              f"...), or model=flow_self for real video (e.g. model=flow_self data={self.name} "
                              "model.init_from=<a flow_supervised weights.safetensors or last.ckpt>)")
         if isinstance(self.data, WorldsDataConfig):
-            from dfvo.data.synthetic import check_training_seeds
+            from dfvo.synthetic import check_training_seeds
             check_training_seeds(self.data.seeds, "data.seeds")
             if self.data.device != "cpu" and self.data.num_workers > 0:
                 raise ValueError(f"data.device={self.data.device} renders in the main process; set "
@@ -115,7 +115,7 @@ class DFVODataModule(L.LightningDataModule):
     def _synthetic(self, seeds: list[int], num_frames: int, frame_skips: list[int], train: bool = True) -> Dataset:
         """Synthetic worlds: the training distribution (scenario, speed, turn rate of ``data``) when ``train``, else
         the default worlds (validation stays comparable across training settings)."""
-        from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticSequenceDataset
+        from dfvo.synthetic import SyntheticFlowDataset, SyntheticSequenceDataset
         d = self.data
         cls = SyntheticFlowDataset if self.task == "flow" else SyntheticSequenceDataset
         world: dict[str, Any] = {"device": d.device} if isinstance(d, WorldsDataConfig) else {}

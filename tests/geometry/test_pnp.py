@@ -231,7 +231,7 @@ def test_flow_to_pose_chain_on_a_slanted_plane():
 @pytest.mark.parametrize("scenario", ["straight", "rotation"])
 def test_synthetic_world_oracle_flow_and_depth_recover_true_motion(scenario):
     """Rendered oracle flows/depth -> consistency -> selection -> PnP, batched over 3 frame pairs."""
-    synthetic = pytest.importorskip("dfvo.data.synthetic")
+    synthetic = pytest.importorskip("dfvo.synthetic")
     from dfvo.geometry.camera import backproject_points
     from dfvo.matching.consistency import forward_backward_inconsistency
     from dfvo.matching.selection import select_correspondences

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dfvo.data.synthetic import SyntheticWorld
+from dfvo.synthetic import SyntheticWorld
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 96, 320

@@ -18,7 +18,6 @@ import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.inference.outputs import CSV_FIELDS
 from dfvo.sources import (
     CheckpointError,
@@ -29,6 +28,7 @@ from dfvo.sources import (
     load_weights,
     resolve_source,
 )
+from dfvo.synthetic import SyntheticWorld
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 96, 320  # low resolution keeps each run a few seconds

@@ -11,11 +11,11 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 from torch.utils.data import DataLoader
 
-from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticWorld
 from dfvo.io.checkpoint import CheckpointError
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe
 from dfvo.matching.flow_warp import warp_by_flow
 from dfvo.models.flow_net import FlowNet
+from dfvo.synthetic import SyntheticFlowDataset, SyntheticWorld
 from dfvo.training.flow_module import FlowModule, load_flow_weights
 from dfvo.training.online_flow import OnlineFlowConfig, OnlineFlowFinetuner
 

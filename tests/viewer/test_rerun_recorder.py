@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
+from dfvo.synthetic import SyntheticWorld
 from dfvo.training.flow_viz import flow_to_color
 
 REPO = Path(__file__).resolve().parents[2]

@@ -1,14 +1,14 @@
 """Synthetic driving worlds with exact ground truth: images, stereo, depth, optical flow, poses.
 
 Street scenarios: a street with textured road, pavements, building rows, poles, parked and moving cars
-(:mod:`dfvo.data.synthetic_trajectory`, :mod:`dfvo.data.synthetic_scene`). The highway scenario: a curving
+(:mod:`dfvo.synthetic.trajectory`, :mod:`dfvo.synthetic.scene`). The highway scenario: a curving
 dual carriageway with lanes, median barrier, guard rails, trees, signs, forest edges and distant hills, and
-traffic at its own speeds (:mod:`dfvo.data.synthetic_highway`, :mod:`dfvo.data.synthetic_highway_scene`).
-Rendered by ray casting in plain PyTorch on the CPU or a GPU (:mod:`dfvo.data.synthetic_render`), with
-procedural textures evaluated on 3-D surface coordinates (:mod:`dfvo.data.synthetic_shading`,
-:mod:`dfvo.data.synthetic_textures`). Everything is deterministic in ``seed`` (and the settings).
+traffic at its own speeds (:mod:`dfvo.synthetic.highway`, :mod:`dfvo.synthetic.highway_scene`).
+Rendered by ray casting in plain PyTorch on the CPU or a GPU (:mod:`dfvo.synthetic.render`), with
+procedural textures evaluated on 3-D surface coordinates (:mod:`dfvo.synthetic.shading`,
+:mod:`dfvo.synthetic.textures`). Everything is deterministic in ``seed`` (and the settings).
 
-Modules: :mod:`dfvo.data.synthetic_world` (:class:`SyntheticWorld`), :mod:`dfvo.data.synthetic_datasets`
+Modules: :mod:`dfvo.synthetic.world` (:class:`SyntheticWorld`), :mod:`dfvo.synthetic.datasets`
 (datasets, held-out worlds). This module gathers their public names.
 
 Held-out worlds: seeds >= ``HELD_OUT_SEED`` (1000) are evaluation worlds and are never trained on
@@ -36,7 +36,7 @@ Convention:
 
 from __future__ import annotations
 
-from dfvo.data.synthetic_datasets import (
+from dfvo.synthetic.datasets import (
     HELD_OUT_SEED,
     HELD_OUT_SPEED,
     TRAINING_SCENARIOS,
@@ -47,10 +47,10 @@ from dfvo.data.synthetic_datasets import (
     check_training_seeds,
     held_out_worlds,
 )
-from dfvo.data.synthetic_highway import HIGHWAY_SPEED
-from dfvo.data.synthetic_render import SKY_DEPTH
-from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT, CITY_SPEED, SCENARIOS, TURN_RATE_DEG
-from dfvo.data.synthetic_world import KITTI_HW, KITTI_K, SyntheticWorld
+from dfvo.synthetic.highway import HIGHWAY_SPEED
+from dfvo.synthetic.render import SKY_DEPTH
+from dfvo.synthetic.trajectory import CAMERA_HEIGHT, CITY_SPEED, SCENARIOS, TURN_RATE_DEG
+from dfvo.synthetic.world import KITTI_HW, KITTI_K, SyntheticWorld
 
 __all__ = ["SKY_DEPTH", "SCENARIOS", "CAMERA_HEIGHT", "KITTI_K", "KITTI_HW", "HIGHWAY_SPEED", "CITY_SPEED",
            "TURN_RATE_DEG", "TRAINING_SPEED", "TRAINING_SCENARIOS", "HELD_OUT_SEED", "HELD_OUT_SPEED", "HeldOutWorld",

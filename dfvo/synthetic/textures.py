@@ -10,7 +10,7 @@ Detail that would alias (features smaller than a few pixels at the hit's distanc
 finer than ~3 footprints are replaced by their average (a cheap band limit).
 
 All functions take and return tensors on one device (CPU or GPU); constants follow the inputs' device.
-This module is pure texture maths: which surface gets which material is :mod:`dfvo.data.synthetic_shading`.
+This module is pure texture maths: which surface gets which material is :mod:`dfvo.synthetic.shading`.
 """
 
 from __future__ import annotations

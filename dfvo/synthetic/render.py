@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from dfvo.data.synthetic_scene import DRAW_DISTANCE, SHAPE_ELLIPSOID, Scene, rot_y
-from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT
+from dfvo.synthetic.scene import DRAW_DISTANCE, SHAPE_ELLIPSOID, Scene, rot_y
+from dfvo.synthetic.trajectory import CAMERA_HEIGHT
 
 TILE = 8
 FAR = DRAW_DISTANCE  # default drawing distance of an object (its nearest possible point), metres

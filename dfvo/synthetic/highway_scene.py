@@ -2,8 +2,8 @@
 lamp posts), forest edges and distant hills, plus the road surface (lanes, markings, verges).
 
 Convention:
-    Objects and ids as in :mod:`dfvo.data.synthetic_scene`; route coordinates as in
-    :mod:`dfvo.data.synthetic_highway`. Hills and forest edges are ellipsoids half sunk into the ground; hills
+    Objects and ids as in :mod:`dfvo.synthetic.scene`; route coordinates as in
+    :mod:`dfvo.synthetic.highway`. Hills and forest edges are ellipsoids half sunk into the ground; hills
     are always drawn (no drawing distance), so the far terrain (~100-500 m) never pops in or out.
 """
 
@@ -14,8 +14,8 @@ import math
 import numpy as np
 import torch
 
-from dfvo.data.synthetic_highway import MEDIAN_HALF, SHOULDER, HighwayRoute
-from dfvo.data.synthetic_scene import (
+from dfvo.synthetic.highway import MEDIAN_HALF, SHOULDER, HighwayRoute
+from dfvo.synthetic.scene import (
     DRAW_DISTANCE,
     KIND_BARRIER,
     KIND_CAR,
@@ -30,8 +30,8 @@ from dfvo.data.synthetic_scene import (
     GroundShader,
     Scene,
 )
-from dfvo.data.synthetic_textures import asphalt, band, grass, lines
-from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT, Trajectory
+from dfvo.synthetic.textures import asphalt, band, grass, lines
+from dfvo.synthetic.trajectory import CAMERA_HEIGHT, Trajectory
 
 SEGMENT = 12.0  # length of the straight pieces that approximate barriers, rails and walls along curves
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dfvo.data.synthetic import (
+from dfvo.geometry.camera import backproject_points, pixel_grid, rigid_flow
+from dfvo.synthetic import (
     CAMERA_HEIGHT,
     HELD_OUT_SEED,
     SKY_DEPTH,
@@ -21,7 +22,6 @@ from dfvo.data.synthetic import (
     check_training_seeds,
     held_out_worlds,
 )
-from dfvo.geometry.camera import backproject_points, pixel_grid, rigid_flow
 
 H, W = 96, 320
 

@@ -10,8 +10,8 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.depth import warp_frame_depth
 
-from dfvo.data.synthetic import SKY_DEPTH, SyntheticFlowDataset, SyntheticSequenceDataset, SyntheticWorld
 from dfvo.geometry.camera import backproject_points, pixel_grid, project_points, rigid_flow, transform_points
+from dfvo.synthetic import SKY_DEPTH, SyntheticFlowDataset, SyntheticSequenceDataset, SyntheticWorld
 
 H, W = 96, 320
 

@@ -1,4 +1,4 @@
-"""The synthetic world: one rendered sequence with exact depth, flow, stereo and poses (see :mod:`dfvo.data.synthetic`
+"""The synthetic world: one rendered sequence with exact depth, flow, stereo and poses (see :mod:`dfvo.synthetic`
 for the conventions)."""
 
 from __future__ import annotations
@@ -10,13 +10,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from dfvo.data.synthetic_highway import make_highway_trajectory
-from dfvo.data.synthetic_highway_scene import build_highway_scene
-from dfvo.data.synthetic_render import SKY_DEPTH, View, camera_rays, cast, flow_between
-from dfvo.data.synthetic_scene import build_scene, rot_y
-from dfvo.data.synthetic_shading import shade_views
-from dfvo.data.synthetic_trajectory import SCENARIOS, make_trajectory
 from dfvo.geometry.camera import intrinsics_matrix, resize_intrinsics
+from dfvo.synthetic.highway import make_highway_trajectory
+from dfvo.synthetic.highway_scene import build_highway_scene
+from dfvo.synthetic.render import SKY_DEPTH, View, camera_rays, cast, flow_between
+from dfvo.synthetic.scene import build_scene, rot_y
+from dfvo.synthetic.shading import shade_views
+from dfvo.synthetic.trajectory import SCENARIOS, make_trajectory
 
 __all__ = ["KITTI_K", "KITTI_HW", "SyntheticWorld"]
 

@@ -1,7 +1,7 @@
 """The highway scenario: a gently curving motorway route, the camera's motion on it, and traffic at its own speeds.
 
 Convention:
-    World frame as in :mod:`dfvo.data.synthetic_trajectory` (x right, y down, z forward at the start, ground
+    World frame as in :mod:`dfvo.synthetic.trajectory` (x right, y down, z forward at the start, ground
     ``y = CAMERA_HEIGHT``, the camera centre at ``y = 0``). The route's centre line is the median of a dual
     carriageway: ``lateral > 0`` is the camera's carriageway (lanes 0..L-1 from the median outwards, driving
     towards increasing arc length s), ``lateral < 0`` the oncoming one. Curvature ``kappa > 0`` turns right.
@@ -15,7 +15,7 @@ import math
 import numpy as np
 import torch
 
-from dfvo.data.synthetic_trajectory import Trajectory, draw_speed, heading_vec, right_vec, yaw_pose
+from dfvo.synthetic.trajectory import Trajectory, draw_speed, heading_vec, right_vec, yaw_pose
 
 HIGHWAY_SPEED = (2.0, 3.0)  # default cruise speed range of the camera, m/frame
 LANE_WIDTH = 3.6
@@ -118,7 +118,7 @@ def make_highway_trajectory(num_frames: int, seed: int,
             ``HIGHWAY_SPEED``); it varies by +-3 % along the sequence.
 
     Returns:
-        A :class:`~dfvo.data.synthetic_trajectory.Trajectory` whose ``route`` is a :class:`HighwayRoute` and
+        A :class:`~dfvo.synthetic.trajectory.Trajectory` whose ``route`` is a :class:`HighwayRoute` and
         whose segments are all "highway".
     """
     if num_frames < 2:

@@ -1,8 +1,8 @@
 """Scene container of the synthetic worlds, and the street layout: ground plane plus boxes (pavements, buildings,
-poles, parked and moving cars). The highway layout is :mod:`dfvo.data.synthetic_highway_scene`.
+poles, parked and moving cars). The highway layout is :mod:`dfvo.synthetic.highway_scene`.
 
 Convention:
-    World frame as in :mod:`dfvo.data.synthetic_trajectory` (x right, y down, z forward; ground plane
+    World frame as in :mod:`dfvo.synthetic.trajectory` (x right, y down, z forward; ground plane
     ``y = CAMERA_HEIGHT``). Every object is oriented by a yaw about +y: ``T_w_o = [R_y(yaw) | centre]``;
     its local axes are (x: across the street, y: down, z: along the street) with half sizes ``half``; it is
     that box, or the ellipsoid inscribed in it (``shape``). Ids used by the renderer: -1 sky, 0 ground,
@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from dfvo.data.synthetic_textures import asphalt, band
-from dfvo.data.synthetic_trajectory import CAMERA_HEIGHT, PARKING, Leg, Route, Trajectory
+from dfvo.synthetic.textures import asphalt, band
+from dfvo.synthetic.trajectory import CAMERA_HEIGHT, PARKING, Leg, Route, Trajectory
 
 ROAD_HALF_WIDTH = 6.5  # kerb line
 FACADE = 9.0  # building front line (pavement 2.5 m wide)

@@ -10,8 +10,8 @@ from typing import Any
 import torch
 from torch.utils.data import Dataset
 
-from dfvo.data.synthetic_trajectory import SCENARIOS
-from dfvo.data.synthetic_world import SyntheticWorld
+from dfvo.synthetic.trajectory import SCENARIOS
+from dfvo.synthetic.world import SyntheticWorld
 
 __all__ = ["TRAINING_SPEED", "TRAINING_SCENARIOS", "HELD_OUT_SEED", "HELD_OUT_SPEED", "HeldOutWorld", "held_out_worlds",
            "check_training_seeds", "SyntheticSequenceDataset", "SyntheticFlowDataset"]

@@ -1,7 +1,7 @@
 """Shading of cast synthetic views: which material each hit gets, its surface coordinates, normal and lighting.
 
 Convention:
-    Views are :class:`~dfvo.data.synthetic_render.View` of one :class:`~dfvo.data.synthetic_scene.Scene`; ids
+    Views are :class:`~dfvo.synthetic.render.View` of one :class:`~dfvo.synthetic.scene.Scene`; ids
     -1 sky, 0 ground (coloured by ``Scene.ground``), ``1 + m`` object ``m``. A box hit gets the normal of the
     face it lies on and (h, y_up) coordinates on that face (h along the face from its left edge, y_up above
     the box bottom); an ellipsoid hit gets the ellipsoid normal and (azimuth, elevation) arc coordinates in
@@ -14,8 +14,8 @@ import math
 
 import torch
 
-from dfvo.data.synthetic_render import View, yaw_rotate
-from dfvo.data.synthetic_scene import (
+from dfvo.synthetic.render import View, yaw_rotate
+from dfvo.synthetic.scene import (
     KIND_BARRIER,
     KIND_BUILDING,
     KIND_CAR,
@@ -29,7 +29,7 @@ from dfvo.data.synthetic_scene import (
     SHAPE_ELLIPSOID,
     Scene,
 )
-from dfvo.data.synthetic_textures import (
+from dfvo.synthetic.textures import (
     car,
     concrete,
     facade,
@@ -68,7 +68,7 @@ def shade_views(scene: Scene, views: list[View]) -> list[torch.Tensor]:
     """Colour images (3,H,W) in [0,1] of cast views of the same size and intrinsics, shaded in one pass.
 
     Args:
-        scene: the :class:`~dfvo.data.synthetic_scene.Scene` that was cast.
+        scene: the :class:`~dfvo.synthetic.scene.Scene` that was cast.
         views: cast views (depth, ids, pose, world rays), e.g. the left and right camera of a frame.
 
     Returns:
