@@ -160,7 +160,7 @@ def section_infer(args: argparse.Namespace, device: str) -> dict[str, Any]:
 
 
 def _trajectory(summary: dict[str, Any]) -> np.ndarray:
-    from dfvo.eval.trajectory_io import read_kitti_poses
+    from dfvo.io.trajectory import read_kitti_poses
 
     return read_kitti_poses(summary["pose_file"])
 

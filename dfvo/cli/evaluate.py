@@ -100,7 +100,7 @@ def odometry_options(cfg: DictConfig) -> dict:
         ValueError: a missing or contradictory path key or an unknown choice (one line naming the key).
     """
     from dfvo.eval.alignment import ALIGN_MODES
-    from dfvo.eval.trajectory_io import FORMATS
+    from dfvo.io.trajectory import FORMATS
 
     paths = {}
     for file_key, dir_key in (("gt", "gt_dir"), ("pred", "pred_dir")):

@@ -19,13 +19,13 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from dfvo.eval.trajectory_io import TrajectoryWriter
 from dfvo.inference.config import InferConfig, PoseFormat, typed
 from dfvo.inference.frames import build_sequence
 from dfvo.inference.loop import FrameRecord, track_sequence
 from dfvo.inference.outputs import FramesCsv, prepare_out_dir
 from dfvo.inference.report import finish_run
 from dfvo.inference.timing import StageTimer
+from dfvo.io.trajectory import TrajectoryWriter
 from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, check_sources
 from dfvo.tracking import VisualOdometry
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed

@@ -152,7 +152,7 @@ def test_cli_single_files_write_nothing_else_in_the_working_directory(folders, t
 def test_cli_prefix_and_timestamped_formats(tmp_path: Path) -> None:
     """A shorter KITTI prediction needs allow_prefix=true and the table says so; a TUM prediction is matched by
     timestamp against a EuRoC ground truth given as its dataset folder (<seq>/mav0/...)."""
-    from dfvo.eval.trajectory_io import write_euroc_poses, write_tum_poses
+    from dfvo.io.trajectory import write_euroc_poses, write_tum_poses
 
     gt, pred = _line(250, 1.0), _pred09()
     write_kitti_poses(tmp_path / "gt" / "09.txt", gt)

@@ -219,7 +219,7 @@ def test_interrupted_run_writes_partial_results(infer_cli, frames_io, tmp_path: 
 def test_segment_plot_of_a_short_sequence_is_not_an_empty_plot(tmp_path: Path) -> None:
     """``dfvo.evaluate ... plot_dir=P`` on a path shorter than 100 m writes no (empty) segment-error plot, removes a
     stale one, and says why in its table; a path of 100 m or more gets the plot."""
-    from dfvo.eval.trajectory_io import write_kitti_poses
+    from dfvo.io.trajectory import write_kitti_poses
 
     for n in (40, 160):  # 1 m per frame: 39 m and 159 m
         T = np.tile(np.eye(4), (n, 1, 1))

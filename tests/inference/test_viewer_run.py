@@ -23,7 +23,7 @@ def _run(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
 
 
 def _check_recording(out: Path, pose_file: Path, frames: int) -> None:
-    from dfvo.eval.trajectory_io import read_kitti_poses
+    from dfvo.io.trajectory import read_kitti_poses
     from dfvo.viewer import ENTITIES, read_rrd
 
     rec = read_rrd(out / "run.rrd")

@@ -8,18 +8,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dfvo.eval import read_kitti_poses, read_tum_poses, write_kitti_poses, write_tum_poses
-from dfvo.eval.trajectory_io import (
+from dfvo.io.trajectory import (
     Trajectory,
     TrajectoryWriter,
     detect_format,
     quaternion_to_rotation,
     read_euroc,
     read_kitti,
+    read_kitti_poses,
     read_trajectory,
+    read_tum_poses,
     rotation_to_quaternion,
     write_euroc_poses,
+    write_kitti_poses,
     write_trajectory,
+    write_tum_poses,
 )
 
 

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dfvo.eval import associate_trajectories, evaluate_trajectory, match_timestamps
-from dfvo.eval.trajectory_io import Trajectory
+from dfvo.eval import evaluate_trajectory
+from dfvo.io.association import associate_trajectories, match_timestamps
+from dfvo.io.trajectory import Trajectory
 
 
 def _poses(n: int) -> np.ndarray:
