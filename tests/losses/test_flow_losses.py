@@ -14,7 +14,7 @@ from dfvo.losses.flow_losses import (
 )
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.synthetic import SyntheticWorld
-from dfvo.training.flow_viz import flow_to_color, scalar_to_color
+from dfvo.vis.colour import flow_to_color, scalar_to_color
 
 
 def test_endpoint_error_hand_values() -> None:

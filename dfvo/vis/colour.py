@@ -1,4 +1,4 @@
-"""Images for TensorBoard: optical flow colour coding and scalar maps (inconsistency) as colour images.
+"""Optical flow colour coding and scalar maps (inconsistency) as colour images, for TensorBoard and Rerun.
 
 Convention:
     Flow (B,2,H,W) in pixels. The colour wheel follows the usual Middlebury-style coding: hue = direction
