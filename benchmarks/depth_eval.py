@@ -10,7 +10,7 @@
   on the lower 70% of the image, 1-50 m, pixels whose disparity passes SGBM's uniqueness check. This reference
   is itself approximate (SGBM errors), so read it as a sanity check of the metric scale, not a benchmark.
 - KITTI Eigen split (``--eigen-root``, a KITTI raw root with velodyne scans; optional ``--eigen-split`` file): the
-  seven Eigen metrics of the checkpoint's depth network against projected LiDAR (:mod:`dfvo.eval.depth_eval`, Garg
+  seven Eigen metrics of the checkpoint's depth network against projected LiDAR (:mod:`dfvo.source_eval.depth`, Garg
   crop, 1e-3..80 m), metric and median-scaled.
 """
 
@@ -97,7 +97,7 @@ def main() -> None:
         out["kitti_after"] = kitti_stereo_median_error(trained, a.kitti_odom, int(d.height), int(d.width),
                                                        [0, 25, 50])
     if a.eigen_root:
-        from dfvo.eval.depth_eval import evaluate_depth_task
+        from dfvo.source_eval.depth import evaluate_depth_task
         for key, median in (("eigen_metric", False), ("eigen_median_scaled", True)):
             res = evaluate_depth_task(OmegaConf.create({
                 "gt_dir": a.eigen_root, "depth": {"source": "network", "checkpoint": a.checkpoint,

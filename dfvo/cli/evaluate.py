@@ -153,13 +153,13 @@ def parse_args(argv: list[str]) -> dict:
 
 def _dispatch(cfg: DictConfig) -> dict:
     if cfg.task == "flow":
-        from dfvo.eval.flow_eval import evaluate_flow_task, format_flow_table
+        from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table
 
         result = evaluate_flow_task(cfg)
         print(format_flow_table(result))
         return result
     if cfg.task == "depth":
-        from dfvo.eval.depth_eval import evaluate_depth_task, format_depth_table
+        from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table
 
         result = evaluate_depth_task(cfg)
         print(format_depth_table(result))

@@ -179,8 +179,8 @@ def test_cli_prefix_and_timestamped_formats(tmp_path: Path) -> None:
 
 
 def test_task_dispatch_is_lazy_and_writes_out(monkeypatch, tmp_path: Path) -> None:
-    """task=flow|depth call dfvo.eval.flow_eval.evaluate_flow_task / depth_eval.evaluate_depth_task with the composed
-    config (shared gt_dir/pred_dir) and the command writes their dict to out=."""
+    """task=flow|depth call dfvo.source_eval.flow.evaluate_flow_task / dfvo.source_eval.depth.evaluate_depth_task
+    with the composed config (shared gt_dir/pred_dir) and the command writes their dict to out=."""
     import types
 
     from hydra import compose, initialize_config_module
@@ -195,8 +195,8 @@ def test_task_dispatch_is_lazy_and_writes_out(monkeypatch, tmp_path: Path) -> No
             return {"task": task, "value": 1.5}
         return evaluate
 
-    for task, module, func in (("flow", "dfvo.eval.flow_eval", "evaluate_flow_task"),
-                               ("depth", "dfvo.eval.depth_eval", "evaluate_depth_task")):
+    for task, module, func in (("flow", "dfvo.source_eval.flow", "evaluate_flow_task"),
+                               ("depth", "dfvo.source_eval.depth", "evaluate_depth_task")):
         fake = types.ModuleType(module)
         setattr(fake, func, fake_task(task))
         setattr(fake, f"format_{task}_table", lambda result: f"table of {result['task']}")

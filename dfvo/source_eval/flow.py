@@ -37,6 +37,9 @@ from dfvo.data.transforms import resize_image
 from dfvo.eval.flow_metrics import flow_error_sums, kitti_fill_invalid, metrics_from_sums
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.selection import select_correspondences
+from dfvo.sources import find_checkpoint
+from dfvo.sources.dis import DISFlow
+from dfvo.sources.networks import NetworkFlow
 
 __all__ = ["evaluate_flow_task", "flow_settings", "format_flow_table", "selection_mask", "task_settings"]
 
@@ -77,11 +80,8 @@ def _size(value: Any, key: str) -> tuple[int, int] | None:
 
 def _build_source(s: DictConfig, kind: str) -> Any:
     if kind == "network":
-        from dfvo.sources import find_checkpoint
-        from dfvo.sources.networks import NetworkFlow
         return NetworkFlow(find_checkpoint(s.checkpoint), s.variant, device=str(s.device), input_size=s.input_size)
     if kind == "dis":
-        from dfvo.sources.dis import DISFlow
         return DISFlow(str(s.preset), device=str(s.device))
     return None
 

@@ -1,4 +1,4 @@
-"""task=flow: metrics of dfvo.eval.flow_eval against a straightforward numpy implementation (files decoded by
+"""task=flow: metrics of dfvo.source_eval.flow against a straightforward numpy implementation (files decoded by
 OpenCV), on the real KITTI 2015 pair and on synthetic KITTI-2012 fixtures; sources, BestN selection, errors."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dfvo.data.flow_datasets import resize_flow
 from dfvo.data.flow_io import write_kitti_flow
 from dfvo.data.image_io import read_image
 from dfvo.data.transforms import resize_image
-from dfvo.eval.flow_eval import evaluate_flow_task, format_flow_table, selection_mask
+from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table, selection_mask
 
 cv2 = pytest.importorskip("cv2")
 KITTI = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "flow_samples" / "kitti_flow" / "training"

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from dfvo.data.kitti_eigen import project_velodyne, read_velodyne, velodyne_projection, write_velodyne
-from dfvo.eval.depth_eval import evaluate_depth_task, format_depth_table
+from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table
 from dfvo.synthetic import SKY_DEPTH, SyntheticWorld
 
 DRIVE = "2011_01_01/2011_01_01_drive_0001_sync"

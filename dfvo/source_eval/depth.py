@@ -42,7 +42,9 @@ from dfvo.data.kitti_eigen import (
     velodyne_projection,
 )
 from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
-from dfvo.eval.flow_eval import task_settings
+from dfvo.source_eval.flow import task_settings
+from dfvo.sources import find_checkpoint
+from dfvo.sources.networks import NetworkDepth
 
 __all__ = ["evaluate_depth_task", "depth_settings", "format_depth_table"]
 
@@ -95,8 +97,6 @@ class _Predictions:
 
 
 def _network(s: DictConfig) -> Any:
-    from dfvo.sources import find_checkpoint
-    from dfvo.sources.networks import NetworkDepth
     return NetworkDepth(find_checkpoint(s.checkpoint), float(s.depth_scale), float(s.network_min_depth),
                         float(s.network_max_depth), device=str(s.device), input_size=s.input_size,
                         flip_average=bool(s.flip_average))
