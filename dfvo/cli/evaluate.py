@@ -20,6 +20,11 @@ import hydra
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
+from dfvo.eval.alignment import ALIGN_MODES
+from dfvo.eval.report import evaluate_sequences, format_table, sequence_name
+from dfvo.io.json_io import write_json
+from dfvo.io.trajectory import FORMATS
+
 TASKS = ("odometry", "flow", "depth")
 SCHEMA_NAME = "evaluate_schema"
 
@@ -77,8 +82,6 @@ register_schema()
 
 
 def _names(value: Any) -> list[str] | None:
-    from dfvo.eval.report import sequence_name
-
     if value is None:
         return None
     if OmegaConf.is_config(value):
@@ -99,9 +102,6 @@ def odometry_options(cfg: DictConfig) -> dict:
     Raises:
         ValueError: a missing or contradictory path key or an unknown choice (one line naming the key).
     """
-    from dfvo.eval.alignment import ALIGN_MODES
-    from dfvo.io.trajectory import FORMATS
-
     paths = {}
     for file_key, dir_key in (("gt", "gt_dir"), ("pred", "pred_dir")):
         file_value, dir_value = cfg.get(file_key), cfg.get(dir_key)
@@ -153,19 +153,17 @@ def parse_args(argv: list[str]) -> dict:
 
 def _dispatch(cfg: DictConfig) -> dict:
     if cfg.task == "flow":
-        from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table
+        from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table  # deferred: torch (odometry needs none)
 
         result = evaluate_flow_task(cfg)
         print(format_flow_table(result))
         return result
     if cfg.task == "depth":
-        from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table
+        from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table  # deferred: torch, as for flow
 
         result = evaluate_depth_task(cfg)
         print(format_depth_table(result))
         return result
-    from dfvo.eval.report import evaluate_sequences, format_table
-
     options = odometry_options(cfg)
     with warnings.catch_warnings():  # the scale warning is printed once, under the table
         warnings.simplefilter("ignore", UserWarning)
@@ -177,8 +175,6 @@ def _dispatch(cfg: DictConfig) -> dict:
 
 def run(cfg: DictConfig) -> dict:
     """Evaluate for a composed config: dispatch on ``cfg.task``, write ``cfg.out`` (JSON) when set."""
-    from dfvo.io.json_io import write_json
-
     _choice("task", cfg.task, TASKS)
     result = _dispatch(cfg)
     if cfg.out:

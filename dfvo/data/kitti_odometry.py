@@ -18,6 +18,7 @@ Convention:
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,15 @@ from dfvo.data.transforms import check_working_size, resize_with_intrinsics
 from dfvo.io.trajectory import read_kitti_poses, read_times
 
 CAMERAS = {"color": ("image_2", "image_3", 2, 3), "gray": ("image_0", "image_1", 0, 1)}
+KITTI_ODOM_SEQ = re.compile(r"^\d{1,2}$")  # a KITTI odometry sequence name: 00..21 (one digit accepted)
+
+
+def selects_kitti_odometry(kind: str | None, seq: str | int | None) -> bool:
+    """Whether ``seq`` alone turns the default synthetic data of a run into KITTI odometry (``seq=10``: a sequence
+    number, where the synthetic world's sequences are scenario names); the one home of this rule for the data
+    resolution (:func:`dfvo.inference.frames.resolve_data`) and the camera-height default
+    (:class:`dfvo.inference.config.InferConfig`)."""
+    return kind == "synthetic" and seq is not None and bool(KITTI_ODOM_SEQ.match(str(seq)))
 
 
 def read_times_file(path: str | Path) -> np.ndarray:

@@ -145,7 +145,7 @@ def evaluate_sequences(gt_dir: str | Path, pred_dir: str | Path, seqs: list[str]
                    association=assoc.as_dict())
         results[seq] = res
         if plot_dir is not None:
-            from dfvo.eval.plots import plot_segment_errors, plot_trajectory
+            from dfvo.eval.plots import plot_segment_errors, plot_trajectory  # deferred: matplotlib, only for plots
 
             gt0, _, aligned, _ = aligned_prediction(assoc.gt, assoc.pred, align, assoc.valid)
             plot_trajectory(gt0, aligned[assoc.valid], Path(plot_dir) / f"{seq}_trajectory.png",
