@@ -100,11 +100,11 @@ def main() -> None:
         from dfvo.source_eval.depth import evaluate_depth_task
         for key, median in (("eigen_metric", False), ("eigen_median_scaled", True)):
             res = evaluate_depth_task(OmegaConf.create({
-                "gt_dir": a.eigen_root, "depth": {"source": "network", "checkpoint": a.checkpoint,
-                                                  "split": a.eigen_split, "median_scaling": median,
-                                                  "network_min_depth": float(cfg.model.get("min_depth", 0.1)),
-                                                  "network_max_depth": float(cfg.model.get("max_depth", 100.0)),
-                                                  "input_size": [int(d.height), int(d.width)]}}))
+                "gt_dir": a.eigen_root, "depth": {
+                    "source": "network", "split": a.eigen_split, "median_scaling": median,
+                    "network": {"checkpoint": a.checkpoint, "min_depth": float(cfg.model.get("min_depth", 0.1)),
+                                "max_depth": float(cfg.model.get("max_depth", 100.0)),
+                                "input_size": [int(d.height), int(d.width)]}}}))
             out[key] = {**res["metrics"], "num_frames": res["num_frames"], "scale_median": res["scale"]["median"]}
     print(json.dumps(out))
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import sys
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import hydra
@@ -24,6 +24,9 @@ from dfvo.eval.alignment import ALIGN_MODES
 from dfvo.eval.report import evaluate_sequences, format_table, sequence_name
 from dfvo.io.json_io import write_json
 from dfvo.io.trajectory import FORMATS
+from dfvo.source_eval.config import DepthEvalConfig, FlowEvalConfig
+from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table
+from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table
 
 TASKS = ("odometry", "flow", "depth")
 SCHEMA_NAME = "evaluate_schema"
@@ -31,7 +34,7 @@ SCHEMA_NAME = "evaluate_schema"
 
 @dataclass
 class EvaluateConfig:
-    """Every key of the evaluate command and its default (``evaluate.yaml`` only adds groups and Hydra settings).
+    """Every key of the evaluate command and its default (``evaluate.yaml`` only adds Hydra's settings).
 
     Attributes:
         task: ``odometry`` | ``flow`` | ``depth``.
@@ -50,7 +53,8 @@ class EvaluateConfig:
         gt_times: timestamps of the ground truth (KITTI ``times.txt`` file or a folder of them).
         out: JSON file for the results (None: print only).
         plot_dir: folder for trajectory / segment-error plots (None: no plots).
-        flow: the ``flow/`` group (``task=flow``); depth: the ``depth/`` group (``task=depth``).
+        flow: the settings of ``task=flow`` (:class:`dfvo.source_eval.config.FlowEvalConfig`).
+        depth: the settings of ``task=depth`` (:class:`dfvo.source_eval.config.DepthEvalConfig`).
     """
 
     task: str = "odometry"
@@ -69,8 +73,8 @@ class EvaluateConfig:
     gt_times: str | None = None
     out: str | None = None
     plot_dir: str | None = None
-    flow: Any = None
-    depth: Any = None
+    flow: FlowEvalConfig = field(default_factory=FlowEvalConfig)
+    depth: DepthEvalConfig = field(default_factory=DepthEvalConfig)
 
 
 def register_schema() -> None:
@@ -153,14 +157,10 @@ def parse_args(argv: list[str]) -> dict:
 
 def _dispatch(cfg: DictConfig) -> dict:
     if cfg.task == "flow":
-        from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table  # deferred: torch (odometry needs none)
-
         result = evaluate_flow_task(cfg)
         print(format_flow_table(result))
         return result
     if cfg.task == "depth":
-        from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table  # deferred: torch, as for flow
-
         result = evaluate_depth_task(cfg)
         print(format_depth_table(result))
         return result

@@ -2,8 +2,8 @@
 
 The trajectory files (:mod:`dfvo.io.trajectory`) and the pairing of two trajectories (:mod:`dfvo.io.association`)
 live in :mod:`dfvo.io`, below the dataset readers that use them too; their names are offered here as well, so that
-one ``from dfvo.eval import ...`` gives the whole toolkit. Names are imported lazily (PEP 562) so that
-``python -m dfvo.evaluate`` loads neither torch nor matplotlib unless flow/depth metrics or plots are used.
+one ``from dfvo.eval import ...`` gives the whole toolkit. Names are imported lazily (PEP 562), so that
+``from dfvo.eval import read_trajectory`` loads neither torch nor matplotlib.
 """
 
 from __future__ import annotations

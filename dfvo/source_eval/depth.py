@@ -14,7 +14,7 @@ Prediction files (``source=pred``): ``pred_dir/DATE/DATE_drive_XXXX_sync/FFFFFFF
 ``pred_dir/NNNNNN.npy`` by line index of the split, or ``pred_dir`` = one ``.npy`` file of ``(N,H,W)`` depths in
 split order.
 
-Settings: ``dfvo/conf/evaluate/depth/default.yaml`` (the ``depth:`` node of the command).
+Settings: :class:`dfvo.source_eval.config.DepthEvalConfig` (the ``depth:`` node of the command).
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from omegaconf import DictConfig
 from PIL import Image
 
 from dfvo.data.image_io import DatasetError, read_image
@@ -42,19 +41,17 @@ from dfvo.data.kitti_eigen import (
     velodyne_projection,
 )
 from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
-from dfvo.source_eval.flow import task_settings
+from dfvo.source_eval.config import DepthEvalConfig, task_settings
 from dfvo.sources import find_checkpoint
 from dfvo.sources.networks import NetworkDepth
 
 __all__ = ["evaluate_depth_task", "depth_settings", "format_depth_table"]
 
-DEFAULTS = Path(__file__).resolve().parents[1] / "conf" / "evaluate" / "depth" / "default.yaml"
-SOURCES = ("auto", "network", "pred")
 
 
-def depth_settings(cfg: Any) -> DictConfig:
-    """The ``depth:`` node of ``cfg`` over ``conf/evaluate/depth/default.yaml`` (unknown keys: error)."""
-    return task_settings(cfg, "depth", DEFAULTS)
+def depth_settings(cfg: Any) -> DepthEvalConfig:
+    """The ``depth:`` node of ``cfg`` as a :class:`DepthEvalConfig` (missing keys: its defaults; unknown: an error)."""
+    return task_settings(DepthEvalConfig, cfg, "depth")
 
 
 class _Predictions:
@@ -96,10 +93,11 @@ class _Predictions:
         return torch.from_numpy(np.array(arr, dtype=np.float32))[None, None]
 
 
-def _network(s: DictConfig) -> Any:
-    return NetworkDepth(find_checkpoint(s.checkpoint), float(s.depth_scale), float(s.network_min_depth),
-                        float(s.network_max_depth), device=str(s.device), input_size=s.input_size,
-                        flip_average=bool(s.flip_average))
+def _network(s: DepthEvalConfig) -> Any:
+    net = s.network
+    return NetworkDepth(find_checkpoint(net.checkpoint, "depth.network.checkpoint"), float(net.depth_scale),
+                        float(net.min_depth), float(net.max_depth), device=str(s.device), input_size=net.input_size,
+                        flip_average=bool(net.flip_average))
 
 
 def evaluate_depth_task(cfg: Any) -> dict[str, Any]:
@@ -107,7 +105,7 @@ def evaluate_depth_task(cfg: Any) -> dict[str, Any]:
 
     Args:
         cfg: the command's config: ``gt_dir`` (KITTI raw root holding ``DATE/`` folders), optional ``pred_dir``,
-            and the ``depth`` node (defaults: ``conf/evaluate/depth/default.yaml``).
+            and the ``depth`` node (:class:`DepthEvalConfig`; missing keys take its defaults).
 
     Returns:
         ``{"task", "gt_dir", "pred_dir", "source", "split", "crop", "median_scaling", "depth_range",
@@ -123,13 +121,9 @@ def evaluate_depth_task(cfg: Any) -> dict[str, Any]:
     root = Path(gt_dir)
     pred_dir = Path(cfg["pred_dir"]) if cfg.get("pred_dir") else None
     kind = str(s.source)
-    if kind not in SOURCES:
-        raise ValueError(f"depth.source={kind!r}; expected one of {SOURCES}")
     kind = ("pred" if pred_dir else "network") if kind == "auto" else kind
     if kind == "pred" and pred_dir is None:
         raise ValueError("depth.source=pred needs pred_dir=PATH")
-    if float(s.min_depth) <= 0 or float(s.max_depth) <= float(s.min_depth):
-        raise ValueError(f"depth.min_depth={s.min_depth}, depth.max_depth={s.max_depth}; expected 0 < min < max")
     frames = read_split(s.split) if s.split else list_velodyne_frames(root)
     if s.max_frames:
         frames = frames[: int(s.max_frames)]

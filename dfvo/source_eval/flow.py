@@ -4,10 +4,11 @@ For every training pair ``NNNNNN_10`` → ``NNNNNN_11`` of a KITTI layout (``gt_
 :class:`dfvo.data.flow_datasets.KittiFlow`) a flow source gives the forward flow (and the backward flow for the
 BestN rows), which is scored against ``flow_noc`` / ``flow_occ`` (whichever exist) at the ground truth's size:
 
-- sources: ``network`` (:class:`dfvo.sources.networks.NetworkFlow`), ``dis`` (:class:`dfvo.sources.dis.DISFlow`),
-  ``oracle`` (the ground truth itself: AEPE 0, a check of the plumbing), ``pred`` (KITTI-format flow PNGs
-  ``pred_dir/NNNNNN_10.png``; backward flows ``NNNNNN_11.png`` = 11 → 10 on frame 11's pixels, optional). A
-  ``working_size`` resizes the images before the source; its flow is resized back (vectors scaled).
+- sources: ``network`` (:class:`dfvo.sources.networks.NetworkFlow`, refined as ``infer.py`` refines it when
+  ``refine.iterations`` > 0), ``dis`` (:class:`dfvo.sources.dis.DISFlow`), ``oracle`` (the ground truth itself:
+  AEPE 0, a check of the plumbing), ``pred`` (KITTI-format flow PNGs ``pred_dir/NNNNNN_10.png``; backward flows
+  ``NNNNNN_11.png`` = 11 → 10 on frame 11's pixels, optional). A ``working_size`` resizes the images before the
+  source; its flow is resized back (vectors scaled).
 - ``all`` rows: every pixel with ground truth. ``bestn`` rows (the paper's "+ BestN"): only the pixels that the
   forward-backward inconsistency (:func:`dfvo.matching.consistency.forward_backward_inconsistency`, computed on
   the flows at the ground truth's size) selects: the N most consistent (``best_n``), DF-VO's ``local_best_k``
@@ -17,18 +18,18 @@ BestN rows), which is scored against ``flow_noc`` / ``flow_occ`` (whichever exis
   paper's Out-1), ``fl_all`` = % with EPE > 3 px and > 5 % of the true magnitude (KITTI devkit), both pooled over
   the pixels of all pairs.
 
-Settings: ``dfvo/conf/evaluate/flow/default.yaml`` (the ``flow:`` node of the command).
+Settings: :class:`dfvo.source_eval.config.FlowEvalConfig` (the ``flow:`` node of the command).
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import asdict
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import ConfigKeyError
 
 from dfvo.data.flow_datasets import KittiFlow, resize_flow
 from dfvo.data.flow_io import read_kitti_flow
@@ -36,51 +37,27 @@ from dfvo.data.image_io import DatasetError, read_image
 from dfvo.data.transforms import resize_image
 from dfvo.eval.flow_metrics import flow_error_sums, kitti_fill_invalid, metrics_from_sums
 from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.flow_refinement import refine_forward_backward
 from dfvo.matching.selection import select_correspondences
+from dfvo.source_eval.config import FlowEvalConfig, FlowSelectionEvalConfig, task_settings
 from dfvo.sources import find_checkpoint
 from dfvo.sources.dis import DISFlow
 from dfvo.sources.networks import NetworkFlow
 
-__all__ = ["evaluate_flow_task", "flow_settings", "format_flow_table", "selection_mask", "task_settings"]
+__all__ = ["evaluate_flow_task", "flow_settings", "format_flow_table", "selection_mask"]
 
-DEFAULTS = Path(__file__).resolve().parents[1] / "conf" / "evaluate" / "flow" / "default.yaml"
 LAYOUTS = {"kitti2015": 2015, "kitti2012": 2012}
-SOURCES = ("auto", "network", "dis", "oracle", "pred")
-METHODS = ("best_n", "local_best_k", "threshold")
 
 
-def task_settings(cfg: Any, node: str, defaults: Path) -> DictConfig:
-    """``cfg[node]`` merged over the YAML ``defaults`` (struct: an unknown key is a ValueError naming it)."""
-    base = OmegaConf.load(defaults)
-    OmegaConf.set_struct(base, True)
-    given = cfg.get(node) if cfg is not None else None
-    try:
-        return OmegaConf.merge(base, given) if given is not None else base
-    except ConfigKeyError as err:
-        raise ValueError(f"{node}.{err.key}: unknown setting; the {node} task's settings are {sorted(base)} "
-                         f"({defaults})") from None
+def flow_settings(cfg: Any) -> FlowEvalConfig:
+    """The ``flow:`` node of ``cfg`` as a :class:`FlowEvalConfig` (missing keys: its defaults; unknown: an error)."""
+    return task_settings(FlowEvalConfig, cfg, "flow")
 
 
-def flow_settings(cfg: Any) -> DictConfig:
-    """The ``flow:`` node of ``cfg`` over the defaults of ``conf/evaluate/flow/default.yaml`` (unknown keys: error)."""
-    return task_settings(cfg, "flow", DEFAULTS)
-
-
-def _size(value: Any, key: str) -> tuple[int, int] | None:
-    if value is None:
-        return None
-    try:
-        h, w = (int(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}={value!r}; expected [height, width] or null") from None
-    if h < 8 or w < 8:
-        raise ValueError(f"{key}={value!r}; expected [height, width] of at least 8 pixels")
-    return h, w
-
-
-def _build_source(s: DictConfig, kind: str) -> Any:
+def _build_source(s: FlowEvalConfig, kind: str) -> Any:
     if kind == "network":
-        return NetworkFlow(find_checkpoint(s.checkpoint), s.variant, device=str(s.device), input_size=s.input_size)
+        return NetworkFlow(find_checkpoint(s.checkpoint, "flow.checkpoint"), s.variant, device=str(s.device),
+                           input_size=s.input_size)
     if kind == "dis":
         return DISFlow(str(s.preset), device=str(s.device))
     return None
@@ -96,26 +73,24 @@ def _read_pred(path: Path, hw: tuple[int, int], fill: bool, what: str) -> torch.
     return kitti_fill_invalid(flow, valid)[0] if fill else flow
 
 
-def selection_mask(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, sel: Any) -> torch.Tensor:
+def selection_mask(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, sel: FlowSelectionEvalConfig) -> torch.Tensor:
     """(1,H,W) bool: the pixels of ``flow_fwd`` (2,H,W) that forward-backward consistency with ``flow_bwd`` (2,H,W)
     selects (``sel``: the ``selection`` settings)."""
     H, W = flow_fwd.shape[-2:]
     incon = forward_backward_inconsistency(flow_fwd[None].float(), flow_bwd[None].float())
-    method = str(sel.method)
-    if method not in METHODS:
-        raise ValueError(f"flow.selection.method={method!r}; expected one of {METHODS}")
-    if method == "threshold":
+    if sel.method == "threshold":
         return (incon[0] < float(sel.max_inconsistency)).cpu()
-    num = int(sel.num) if sel.num else max(1, round(float(sel.fraction) * H * W))
-    c = select_correspondences(flow_fwd[None].float(), incon, method=method, num=num, grid=tuple(sel.grid),
-                               max_inconsistency=float(sel.max_inconsistency))
+    c = select_correspondences(flow_fwd[None].float(), incon, method=str(sel.method), num=sel.num_for(H, W),
+                               grid=tuple(sel.grid), max_inconsistency=float(sel.max_inconsistency),
+                               min_valid_fraction=float(sel.min_valid_fraction),
+                               min_region_fraction=float(sel.min_region_fraction), crop_top=float(sel.crop_top))
     pts = c.pts_i[0][c.mask[0]].round().long().cpu()
     mask = torch.zeros(H * W, dtype=torch.bool)
     mask[pts[:, 1] * W + pts[:, 0]] = True
     return mask.view(1, H, W)
 
 
-def _pair_flows(kind: str, src: Any, pair: Any, img1: torch.Tensor, img2: torch.Tensor, gt: dict, s: DictConfig,
+def _pair_flows(kind: str, src: Any, pair: Any, img1: torch.Tensor, img2: torch.Tensor, gt: dict, s: FlowEvalConfig,
                 pred_dir: Path | None, size: tuple[int, int] | None) -> tuple[torch.Tensor, torch.Tensor | None]:
     hw = tuple(img1.shape[-2:])
     if kind == "oracle":
@@ -127,6 +102,8 @@ def _pair_flows(kind: str, src: Any, pair: Any, img1: torch.Tensor, img2: torch.
         return fwd, bwd
     a, b = (img1, img2) if size is None else (resize_image(img1, *size), resize_image(img2, *size))
     fwd, bwd = src(a[None], b[None])
+    if kind == "network" and s.refine.iterations > 0:  # as infer.py refines the network's flow, at the working size
+        fwd, bwd = refine_forward_backward(a[None].to(fwd.device), b[None].to(fwd.device), fwd, bwd, s.refine)
     fwd, bwd = fwd[0].float().cpu(), bwd[0].float().cpu()
     if size is not None:
         ones = torch.ones(1, *fwd.shape[-2:], dtype=torch.bool)
@@ -152,7 +129,7 @@ def evaluate_flow_task(cfg: Any) -> dict[str, Any]:
 
     Args:
         cfg: the command's config: ``gt_dir`` (KITTI ``training`` folder), optional ``pred_dir``, and the ``flow``
-            node (defaults: ``conf/evaluate/flow/default.yaml``).
+            node (:class:`FlowEvalConfig`; missing keys take its defaults).
 
     Returns:
         ``{"task", "layout", "gt_dir", "pred_dir", "source", "working_size", "selection", "num_pairs",
@@ -166,15 +143,11 @@ def evaluate_flow_task(cfg: Any) -> dict[str, Any]:
         raise ValueError("task=flow needs gt_dir=PATH (a KITTI flow 'training' folder with image_2/ or colored_0/ "
                          "and flow_occ/ or flow_noc/)")
     pred_dir = Path(cfg["pred_dir"]) if cfg.get("pred_dir") else None
-    if str(s.layout) not in LAYOUTS:
-        raise ValueError(f"flow.layout={s.layout!r}; expected one of {sorted(LAYOUTS)}")
     kind = str(s.source)
-    if kind not in SOURCES:
-        raise ValueError(f"flow.source={kind!r}; expected one of {SOURCES}")
     kind = ("pred" if pred_dir else "network") if kind == "auto" else kind
     if kind == "pred" and (pred_dir is None or not pred_dir.is_dir()):
         raise FileNotFoundError(f"flow.source=pred: pred_dir={pred_dir} is not a folder of KITTI flow PNGs")
-    size = _size(s.working_size, "flow.working_size")
+    size = tuple(s.working_size) if s.working_size else None
     root = Path(gt_dir)
     train = root / "training" if (root / "training").is_dir() else root
     mask_kind = "occ" if (train / "flow_occ").is_dir() else "noc"
@@ -218,9 +191,11 @@ def evaluate_flow_task(cfg: Any) -> dict[str, Any]:
                for m in ("noc", "occ") if any(m in p["_sums"] for p in per_pair)}
     for p in per_pair:
         p.pop("_sums")
-    sel_cfg = OmegaConf.to_container(s.selection, resolve=True)
+    sel_cfg = {k: (v.value if isinstance(v, Enum) else v) for k, v in asdict(s.selection).items()}
+    label = {"dis": f"dis ({s.preset})", "network": f"network (refined: {s.refine.mode}, {s.refine.iterations} "
+             "iterations)" if s.refine.iterations > 0 else "network"}.get(kind, kind)
     return {"task": "flow", "layout": str(s.layout), "gt_dir": str(train),
-            "pred_dir": str(pred_dir) if pred_dir else None, "source": kind if kind != "dis" else f"dis ({s.preset})",
+            "pred_dir": str(pred_dir) if pred_dir else None, "source": label,
             "working_size": list(size) if size else None,
             "selection": sel_cfg, "num_pairs": len(per_pair), "metrics": metrics, "per_pair": per_pair,
             "source_seconds_per_pair": seconds / max(len(per_pair), 1)}

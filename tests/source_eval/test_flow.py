@@ -3,6 +3,7 @@ OpenCV), on the real KITTI 2015 pair and on synthetic KITTI-2012 fixtures; sourc
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,12 @@ from dfvo.data.flow_datasets import resize_flow
 from dfvo.data.flow_io import write_kitti_flow
 from dfvo.data.image_io import read_image
 from dfvo.data.transforms import resize_image
+from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward
+from dfvo.source_eval.config import FlowSelectionEvalConfig
 from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table, selection_mask
+from dfvo.sources import find_checkpoint
+from dfvo.sources.dis import DISFlow
+from dfvo.sources.networks import NetworkFlow
 
 cv2 = pytest.importorskip("cv2")
 KITTI = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "flow_samples" / "kitti_flow" / "training"
@@ -193,24 +199,21 @@ def test_selection_mask_methods() -> None:
     bwd = -fwd.clone()
     noise = torch.linspace(0, 1, H * W).view(H, W)
     bwd[1] += noise  # inconsistency grows with the pixel index (row-major)
-    sel = OmegaConf.create({"method": "best_n", "fraction": 0.1, "num": None, "max_inconsistency": 0.1,
-                            "grid": [3, 4]})
+    sel = FlowSelectionEvalConfig(method="best_n", fraction=0.1, num_correspondences=None, max_inconsistency=0.1,
+                                  grid=[3, 4])
     m = selection_mask(fwd, bwd, sel)[0]
     assert int(m.sum()) == 120 and bool(m[0, :38].all()) and not bool(m[:, 38:].any())  # x+2 leaves the image
-    sel.method, sel.num = "threshold", None
-    m = selection_mask(fwd, bwd, sel)[0]
+    m = selection_mask(fwd, bwd, replace(sel, method="threshold"))[0]
     incon = noise.clone()
     incon[:, 38:] = float("inf")
     assert torch.equal(m, incon < 0.1)
-    sel.method, sel.num = "local_best_k", 24
-    m = selection_mask(fwd, bwd, sel)[0]
+    m = selection_mask(fwd, bwd, replace(sel, method="local_best_k", num_correspondences=24))[0]
     assert 0 < int(m.sum()) <= 24 and bool((incon[m] < 0.1).all())
 
 
 def test_dis_and_network_sources_on_the_real_pair() -> None:
     gt_dir = _kitti()
     res = evaluate_flow_task(_cfg(gt_dir, source="dis", preset="ultrafast", working_size=[96, 320]))
-    from dfvo.sources.dis import DISFlow
     img1, img2 = read_image(gt_dir / "image_2" / "000000_10.png"), read_image(gt_dir / "image_2" / "000000_11.png")
     fwd, _ = DISFlow("ultrafast")(resize_image(img1, 96, 320)[None], resize_image(img2, 96, 320)[None])
     fwd = resize_flow(fwd[0], torch.ones(1, 96, 320, dtype=torch.bool), (375, 1242))[0]
@@ -222,6 +225,18 @@ def test_dis_and_network_sources_on_the_real_pair() -> None:
     net = evaluate_flow_task(_cfg(gt_dir, source="network", working_size=[96, 320]))
     assert net["source"] == "network" and np.isfinite(net["metrics"]["occ"]["all"]["aepe"])
     assert net["metrics"]["occ"]["bestn"]["num_pixels"] > 50
+    # flow.refine: the network's flow refined as infer.py refines it (at the working size), then scored
+    refined = evaluate_flow_task(_cfg(gt_dir, source="network", working_size=[96, 320],
+                                      refine={"iterations": 2, "mode": "dense"}))
+    a, b = resize_image(img1, 96, 320)[None], resize_image(img2, 96, 320)[None]
+    fwd, bwd = NetworkFlow(find_checkpoint("checkpoints/flow.safetensors"), None)(a, b)
+    fwd, _ = refine_forward_backward(a, b, fwd, bwd, FlowRefinementConfig(iterations=2, mode="dense"))
+    fwd = resize_flow(fwd[0], torch.ones(1, 96, 320, dtype=torch.bool), (375, 1242))[0]
+    ref = _np_summary([_np_errors(fwd.permute(1, 2, 0).double().numpy(), gt, valid)])
+    for key, value in ref.items():
+        assert refined["metrics"]["occ"]["all"][key] == pytest.approx(value, rel=1e-4), key
+    assert refined["source"] == "network (refined: dense, 2 iterations)"
+    assert refined["metrics"]["occ"]["all"]["aepe"] != net["metrics"]["occ"]["all"]["aepe"]
 
 
 def test_flow_task_errors(tmp_path: Path) -> None:
