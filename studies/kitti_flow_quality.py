@@ -15,8 +15,8 @@ pipeline's photometric refinement (``flow.refine``, N Gauss-Newton iterations; 0
 the forward and backward flows before everything is measured. ``--source dis`` measures OpenCV's DIS flow (the
 classical baseline of ``flow=dis``, preset ``--preset``) the same way. Examples:
 
-    python benchmarks/kitti_flow_quality.py --checkpoint checkpoints/flow.safetensors --refine-iterations 0
-    python benchmarks/kitti_flow_quality.py --source dis --refine-iterations 0
+    python studies/kitti_flow_quality.py --checkpoint checkpoints/flow.safetensors --refine-iterations 0
+    python studies/kitti_flow_quality.py --source dis --refine-iterations 0
 
 prints one JSON object.
 """
@@ -25,32 +25,21 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dfvo.data.kitti_odometry import KittiOdometry  # noqa: E402
-from dfvo.geometry.two_view import sampson_sq  # noqa: E402
-from dfvo.matching.consistency import forward_backward_inconsistency  # noqa: E402
-from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward  # noqa: E402
-from dfvo.matching.selection import select_correspondences  # noqa: E402
-from dfvo.sources import find_checkpoint  # noqa: E402
-from dfvo.sources.dis import DISFlow  # noqa: E402
-from dfvo.sources.networks import NetworkFlow  # noqa: E402
-
-
-def fundamental_from_pose(T_prev_cur: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """F (3,3) with x_cur^T F x_prev = 0 for the relative pose ``T_cur_prev`` = inverse of ``T_prev_cur``."""
-    T_cur_prev = np.linalg.inv(T_prev_cur)
-    R, t = T_cur_prev[:3, :3], T_cur_prev[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    Kinv = np.linalg.inv(K)
-    return Kinv.T @ tx @ R @ Kinv
+from dfvo.data.kitti_odometry import KittiOdometry
+from dfvo.eval.epipolar import fundamental_from_pose
+from dfvo.geometry.two_view import sampson_sq
+from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward
+from dfvo.matching.selection import select_correspondences
+from dfvo.sources import find_checkpoint
+from dfvo.sources.dis import DISFlow
+from dfvo.sources.networks import NetworkFlow
 
 
 def main() -> None:

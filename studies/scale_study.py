@@ -18,7 +18,7 @@ tracker setting on the cached tensors and prints one JSON object per setting:
     - ``network_road_height_log_ratio``: with ``tracker.road_plane.points=depth``, log(network road height / camera
       height).
 
-    python benchmarks/scale_study.py --cache /tmp/k06.pt -o data=kitti_odom data.root=../shared/data/kitti_odom \
+    python studies/scale_study.py --cache /tmp/k06.pt -o data=kitti_odom data.root=../shared/data/kitti_odom \
         seq=06 -s default= -s no_height=data.camera_height=null \
     -s paper=tracker.scale.depth_views=1,tracker.scale.temporal=false,tracker.gate.enabled=false,data.camera_height=null
 
@@ -42,9 +42,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dfvo.eval import evaluate_trajectory  # noqa: E402
+from dfvo.eval import evaluate_trajectory
 
 
 def compose(overrides: list[str]):

@@ -1,6 +1,6 @@
 """Accuracy of a trained depth checkpoint (and of its untrained initialisation); prints JSON.
 
-    python benchmarks/depth_eval.py runs/depth_stereo_cpu/checkpoints/last.ckpt [--kitti-odom ../shared/data/kitti_odom]
+    python studies/depth_eval.py runs/depth_stereo_cpu/checkpoints/last.ckpt [--kitti-odom ../shared/data/kitti_odom]
         [--eigen-root KITTI_RAW --eigen-split eigen_test_files.txt]
 
 - Synthetic: Eigen metrics (abs rel, δ<1.25; raw = metric, and median-scaled) on the validation worlds of the run's

@@ -18,8 +18,8 @@ tracker's 1-D RANSAC lock onto a wrong scale). ``parallax_3px`` repeats the stat
   CNN / true depth over every pixel with true depth <= 80 m (lower 70 % of the image), the Eigen abs rel there, and
   the per-frame median per true-depth band (far-depth compression over whole surfaces, not only at the points).
 
-    python benchmarks/depth_scale_consistency.py --depth dfvo/checkpoints/depth.safetensors
-    python benchmarks/depth_scale_consistency.py --synthetic all --cache /tmp/dsc_synth.pt --depth W.safetensors
+    python studies/depth_scale_consistency.py --depth dfvo/checkpoints/depth.safetensors
+    python studies/depth_scale_consistency.py --synthetic all --cache /tmp/dsc_synth.pt --depth W.safetensors
 
 prints one JSON object. ``--depth`` takes a .safetensors / .pt DepthNet or a depth training ``.ckpt``. ``--cache FILE``
 keeps the frames and their correspondences (which do not depend on the depth network): the first call writes it,
@@ -30,19 +30,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dfvo.matching.consistency import forward_backward_inconsistency  # noqa: E402
-from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward  # noqa: E402
-from dfvo.matching.selection import select_correspondences  # noqa: E402
-from dfvo.sources.networks import NetworkDepth, NetworkFlow  # noqa: E402
-from dfvo.tracking.scale import sample_depth, triangulated_depth  # noqa: E402
+from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward
+from dfvo.matching.selection import select_correspondences
+from dfvo.sources.networks import NetworkDepth, NetworkFlow
+from dfvo.tracking.scale import sample_depth, triangulated_depth
 
 BANDS = ((0.0, 8.0), (8.0, 15.0), (15.0, 25.0), (25.0, 50.0))
 DENSE_MAX_DEPTH = 80.0

@@ -11,7 +11,7 @@ lengths is the scale error itself. Prints one JSON object:
       autocorrelation (near 0: the scale errors of consecutive frames are independent);
     - ``direction_error_deg``: median, mean and max angle between predicted and true translation directions.
 
-    python benchmarks/error_decomposition.py --gt ../shared/data/kitti_odom/poses/06.txt --pred OUT/06.txt
+    python studies/error_decomposition.py --gt ../shared/data/kitti_odom/poses/06.txt --pred OUT/06.txt
 
 Any trajectory format that ``python -m dfvo.evaluate`` reads (KITTI 12/13, TUM, EuRoC; ``--format auto``); the two
 files are paired as there (timestamps, frame indices, or line by line; a prefix is accepted) and must pair up on
@@ -22,46 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dfvo.eval import associate_trajectories, evaluate_trajectory, read_trajectory  # noqa: E402
-
-
-def relative(poses: np.ndarray) -> np.ndarray:
-    """(N,4,4) T_w_k -> (N-1,4,4) T_k_k+1."""
-    return np.linalg.inv(poses[:-1]) @ poses[1:]
-
-
-def compose(rel: np.ndarray) -> np.ndarray:
-    out = [np.eye(4)]
-    for T in rel:
-        out.append(out[-1] @ T)
-    return np.stack(out)
-
-
-def scale_free(gt: np.ndarray, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Split a prediction's relative motion into what the flow did and what the scale did.
-
-    Args:
-        gt, pred: (N,4,4) T_w_k of the same frames.
-
-    Returns:
-        ``(true_lengths, moving, direction_deg, length_ratio)``: the prediction with every relative translation
-        rescaled to the true length (N,4,4); which of the N-1 pairs moved (true translation > 1 mm); per moving pair
-        the angle between predicted and true translation (degrees) and predicted / true length.
-    """
-    rg, rp = relative(gt), relative(pred)
-    lg, lp = np.linalg.norm(rg[:, :3, 3], axis=1), np.linalg.norm(rp[:, :3, 3], axis=1)
-    moving = lg > 1e-3
-    fixed = rp.copy()
-    fixed[moving, :3, 3] *= (lg[moving] / np.maximum(lp[moving], 1e-12))[:, None]
-    cos = np.einsum("ij,ij->i", rg[moving, :3, 3], rp[moving, :3, 3]) / np.maximum(lg[moving] * lp[moving], 1e-12)
-    return compose(fixed), moving, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), lp[moving] / lg[moving]
+from dfvo.eval.error_decomposition import scale_free
+from dfvo.eval.odometry_metrics import evaluate_trajectory
+from dfvo.io.association import associate_trajectories
+from dfvo.io.trajectory import read_trajectory
 
 
 def main() -> None:

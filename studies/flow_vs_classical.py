@@ -15,7 +15,7 @@ depth network; on synthetic worlds also the true depth, ``--depths network,oracl
       candidates (dense consistent pixels for the scale, accurate corners for the geometry).
 
 Per run: RPE (m, deg) and ATE (m) as run and with every relative translation rescaled to its true length (what the
-flow and geometry did, scale removed; as ``benchmarks/error_decomposition.py``), per-frame translation-direction
+flow and geometry did, scale removed; as ``studies/error_decomposition.py``), per-frame translation-direction
 and rotation errors (median/mean/max, degrees), the predicted / true translation length ratio (median, std: the
 scale's error), the Sampson distance of the tracker's selected correspondences
 under the true relative pose (pixels: median, p90, share above 1 px; pairs with < 0.1 m true translation skipped),
@@ -27,9 +27,9 @@ written to ``--out``). The network, its raw flow and the depth of a case are com
 ``--quick`` checks the whole path in a few minutes (KITTI frames 0-10, one drive and one highway world of 8 frames,
 network depth only); its numbers are too few frames to compare flows by.
 
-    python benchmarks/flow_vs_classical.py --out /work/runs/flow_vs_classical_before.json    # ~30 min on 2 cores
-    python benchmarks/flow_vs_classical.py --quick --out /tmp/flow_vs_classical_quick.json   # plumbing, a few min
-    python benchmarks/flow_vs_classical.py --checkpoint /work/runs/flow_v2/weights.safetensors --skip-synthetic
+    python studies/flow_vs_classical.py --out /work/runs/flow_vs_classical_before.json    # ~30 min on 2 cores
+    python studies/flow_vs_classical.py --quick --out /tmp/flow_vs_classical_quick.json   # plumbing, a few min
+    python studies/flow_vs_classical.py --checkpoint /work/runs/flow_v2/weights.safetensors --skip-synthetic
 """
 
 from __future__ import annotations
@@ -46,25 +46,21 @@ from typing import Any
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from error_decomposition import relative, scale_free  # noqa: E402
-from kitti_flow_quality import fundamental_from_pose  # noqa: E402
-
-from dfvo.eval import evaluate_trajectory  # noqa: E402
-from dfvo.geometry.two_view import sampson_sq  # noqa: E402
-from dfvo.inference.config import typed  # noqa: E402
-from dfvo.inference.frames import build_sequence  # noqa: E402
-from dfvo.inference.loop import track_sequence  # noqa: E402
-from dfvo.inference.timing import StageTimer  # noqa: E402
-from dfvo.matching.flow_refinement import refine_consecutive  # noqa: E402
-from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, refine_pyramid  # noqa: E402
-from dfvo.sources import build_depth_source  # noqa: E402
-from dfvo.sources.dis import DISFlow  # noqa: E402
-from dfvo.sources.networks import NetworkFlow  # noqa: E402
-from dfvo.synthetic import held_out_worlds  # noqa: E402
-from dfvo.tracking import VisualOdometry  # noqa: E402
+from dfvo.eval import evaluate_trajectory
+from dfvo.eval.epipolar import fundamental_from_pose
+from dfvo.eval.error_decomposition import relative, scale_free
+from dfvo.geometry.two_view import sampson_sq
+from dfvo.inference.config import typed
+from dfvo.inference.frames import build_sequence
+from dfvo.inference.loop import track_sequence
+from dfvo.inference.timing import StageTimer
+from dfvo.matching.flow_refinement import refine_consecutive
+from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, refine_pyramid
+from dfvo.sources import build_depth_source
+from dfvo.sources.dis import DISFlow
+from dfvo.sources.networks import NetworkFlow
+from dfvo.synthetic import held_out_worlds
+from dfvo.tracking import VisualOdometry
 
 FLOWS = ("network", "network_raw", "dis", "network_pyramid")
 EXTRA_FLOWS = ("network_both",)  # only when named in --flows
