@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dfvo.eval.ablation import load_runs, table
 from dfvo.synthetic import SyntheticWorld
 
 REPO = Path(__file__).resolve().parents[2]
@@ -45,8 +46,9 @@ def assert_logged(log: Path, message: str) -> None:
 # ------------------------------------------------------------------------------------------------ multirun out_dir
 def test_multirun_jobs_each_write_a_complete_folder(infer_cli, frames_io, tmp_path: Path) -> None:
     """``-m tracker=hybrid,pnp out_dir=X``: each job writes its own subfolder of X, named by its overrides, with
-    complete files (one 12-number line per frame, one frames.csv row per frame, its own infer.log); nothing is
-    written into X itself or the working folder."""
+    complete files (one 12-number line per frame, one frames.csv row per frame, its own infer.log, the sweep's
+    overrides in summary.json); nothing is written into X itself or the working folder; the ablation table of the
+    sweep has one row per tracker."""
     n, sweep = 4, tmp_path / "X"
     infer_cli("-m", "tracker=hybrid,pnp", f"out_dir={sweep}", f"data.num_frames={n}", *SMALL, *ORACLE, timeout=600)
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
@@ -63,7 +65,13 @@ def test_multirun_jobs_each_write_a_complete_folder(infer_cli, frames_io, tmp_pa
         summary = json.loads((job / "summary.json").read_text())
         assert summary["choices"]["tracker"] == tracker and summary["frames_written"] == n
         assert (job / "infer.log").is_file() and (job / "trajectory.png").is_file()
+        recorded = summary["overrides"]  # the sweep's non-group overrides, as Hydra saw them
+        assert recorded["data.num_frames"] == str(n) and recorded["img_res.height"] == str(H)
+        assert not {"progress", "num_threads", "out_dir", "tracker", "flow", "depth"} & set(recorded)
     assert not (infer_cli.cwd / "outputs").exists()
+    lines = [line for line in table(load_runs([sweep])).splitlines() if line.startswith("| ")]
+    assert lines[0] == "| tracker | synthetic_drive_s0 |"
+    assert {line.split("|")[1].strip() for line in lines[1:]} == {"hybrid", "pnp"}
 
 
 # ------------------------------------------------------------------------------------------------ intrinsics
@@ -315,7 +323,8 @@ OTHER_BAD_INPUT = {
     "no intrinsics": (lambda d: ["data=folder", f"data.root={_frames(d, [(96, 320)] * 2)}"],
                       r"data=folder needs data\.fx= \(intrinsics in pixels of the stored frames\)"),
     "KITTI number without root": (lambda d: ["seq=10"], r"KITTI odometry sequence 10 needs the dataset folder: set "
-                                                        r"the environment variable DFVO_KITTI_ODOM_ROOT=ROOT"),
+                                                        r"the environment variable DFVO_KITTI_ODOM_ROOT=ROOT once or "
+                                                        r"pass data\.root=ROOT"),
 }
 
 
@@ -330,3 +339,4 @@ def test_other_bad_input_is_one_line(infer_cli, tmp_path: Path, monkeypatch: pyt
     assert proc.returncode == 1, proc.stderr
     line = error_line(proc)
     assert re.search(pattern, line) and line.endswith(f"[log: {out / 'infer.log'}]"), line
+    assert "Traceback (most recent call last)" in (out / "infer.log").read_text()
