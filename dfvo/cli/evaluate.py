@@ -11,6 +11,7 @@ typed schema is :class:`EvaluateConfig`. It creates no run folder and no log fil
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 from dataclasses import dataclass, field
@@ -18,8 +19,11 @@ from typing import Any
 
 import hydra
 from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
+from dfvo.cli.errors import one_line
 from dfvo.eval.alignment import ALIGN_MODES
 from dfvo.eval.report import evaluate_sequences, format_table, sequence_name
 from dfvo.io.json_io import write_json
@@ -141,7 +145,6 @@ def parse_args(argv: list[str]) -> dict:
     """
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
 
     GlobalHydra.instance().clear()
     try:
@@ -183,12 +186,27 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(config_path="pkg://dfvo.conf.evaluate", config_name="evaluate", version_base="1.3")
-def main(cfg: DictConfig) -> dict:
-    """The command: :func:`run`, with bad input reported as one ``error:`` line and exit status 2."""
+def evaluate_app(cfg: DictConfig) -> dict:
+    """The Hydra task: :func:`run`, with bad input reported as one ``error:`` line and exit status 2."""
     try:
         return run(cfg)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+def main() -> None:
+    """Entry point of ``dfvo-eval`` and ``python -m dfvo.evaluate``: :func:`evaluate_app`, and a command line Hydra
+    cannot compose (an unknown key, a value of the wrong type or choice) reported like other bad input: one
+    ``error:`` line, exit status 2 (``HYDRA_FULL_ERROR=1`` keeps Hydra's own report)."""
+    if os.environ.get("HYDRA_FULL_ERROR"):
+        evaluate_app()
+        return
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises instead of printing its own multi-line report
+    try:
+        evaluate_app()
+    except (HydraException, OmegaConfBaseException) as err:
+        print(f"error: {one_line(err)}", file=sys.stderr)
         sys.exit(2)
 
 

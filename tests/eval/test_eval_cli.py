@@ -205,3 +205,12 @@ def test_task_dispatch_writes_out(monkeypatch, tmp_path: Path) -> None:
             assert json.loads(out.read_text()) == {"task": task, "value": 1.5}
         with pytest.raises(ValueError, match="task=pose: expected one of odometry, flow, depth"):
             cli.run(compose(config_name="evaluate", overrides=["task=pose"]))
+
+
+def test_task_settings_that_do_not_compose_are_one_line() -> None:
+    """The typed flow/depth settings are checked when Hydra composes: a bad value or an unknown key ends, like other
+    bad input, with one ``error:`` line naming the key and exit status 2."""
+    bad = _cli("task=flow", "gt_dir=G", "flow.layout=kitti2020", "depth.network.bogus=1")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert bad.stderr.startswith("error: ") and "flow.layout=kitti2020" in bad.stderr
+    assert "expected one of [kitti2015, kitti2012]" in bad.stderr
