@@ -231,12 +231,13 @@ def test_two_view_scale_gets_each_pairs_later_depth_across_batches(tmp_path: Pat
     """tracker.scale.depth_views=2: the loop hands the tracker frame i+1's depth for pair (i, i+1), carried over
     batch boundaries and into a last partial batch (10 frames, batches of 2 pairs). With the true depth the scale
     of frame i's depth and the scale of frame i+1's depth are both the true one, so every pair's translation is
-    exact; an off-by-one depth frame would bias the geometric mean of the two scales. ``tracker=e`` keeps every
-    pair on the essential-matrix path whose scale uses the two depths (GRIC's E-vs-PnP choice, which MKL's float
-    paths can tip either way, does not decide which pairs are checked)."""
+    exact; an off-by-one depth frame would bias the geometric mean of the two scales. Every pair stays on the
+    essential-matrix path whose scale uses the two depths: ``tracker=e`` (no PnP) and model selection by a flow
+    magnitude of 0 px (never "prefer PnP"), so GRIC's E-vs-H choice, which MKL's float paths tip differently on
+    other CPUs, cannot decide which pairs are checked."""
     n = 10
-    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "batch_size=2", "tracker=e",
-              "tracker.scale.depth_views=2", *SMALL, *ORACLE)
+    run_infer(f"out_dir={tmp_path}", f"data.num_frames={n}", "batch_size=2", "tracker=e", "model_selection=flow",
+              "tracker.model_selection.flow_magnitude_threshold=0", "tracker.scale.depth_views=2", *SMALL, *ORACLE)
     gt = SyntheticWorld(seed=0, num_frames=n, height=H, width=W).poses().numpy()
     t_err, _ = relative_errors(gt, read_poses(tmp_path / "synthetic_drive_s0.txt"))
     with (tmp_path / "frames.csv").open() as f:
