@@ -16,17 +16,14 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dfvo.data.image_io import list_images, read_image  # noqa: E402
-from dfvo.data.kitti_odometry import KittiOdometry  # noqa: E402
-from dfvo.data.kitti_raw import KittiRawSnippets  # noqa: E402
+from dfvo.data.image_io import list_images, read_image
+from dfvo.data.kitti_odometry import KittiOdometry
+from dfvo.data.kitti_raw import KittiRawSnippets
 
 
 def _time_per_item(fn, items, repeats: int) -> float:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from dfvo.eval import associate_trajectories, evaluate_sequences, evaluate_trajectory, read_kitti_poses
-from dfvo.eval.trajectory_io import read_trajectory, write_euroc_poses, write_kitti_poses, write_tum_poses
+from dfvo.io.trajectory import read_trajectory, write_euroc_poses, write_kitti_poses, write_tum_poses
 
 SHARED = Path(__file__).resolve().parents[2] / "shared/data"
 

@@ -18,19 +18,15 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dfvo.data.synthetic import SyntheticWorld  # noqa: E402
-from dfvo.matching.consistency import forward_backward_inconsistency  # noqa: E402
-from dfvo.matching.selection import select_correspondences  # noqa: E402
-from dfvo.models.flow_net import FlowNet  # noqa: E402
-from dfvo.training.flow_module import load_flow_weights  # noqa: E402
+from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.selection import select_correspondences
+from dfvo.models.flow_net import FlowNet
+from dfvo.synthetic import SyntheticWorld
+from dfvo.training.flow_module import load_flow_weights
 
 
 @torch.no_grad()

@@ -16,6 +16,7 @@ Sections (each guarded: a failing section records its error and the others still
 Usage:
     python benchmarks/gpu_check.py [--device auto|cuda|cpu] [--quick] [--out gpu_check.json]
         [--kitti-root ROOT] [--batches 16 64] [--sections env audit infer agreement train]
+    python -m benchmarks.gpu_check ...     (the same from the root of a checkout where dfvo is not installed)
 
 ``--quick`` (for a CPU): 96x320, 9 frames, batch 4, 2+2 training steps at 64x128: checks every path runs.
 """
@@ -37,17 +38,14 @@ from typing import Any
 
 import numpy as np
 import torch
+from hydra import compose, initialize_config_dir
+
+import dfvo.inference.loop as loop
+import dfvo.inference.timing as timing
+from dfvo.inference.config import typed
+from dfvo.inference.pipeline import resolve_device, run_inference
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from hydra import compose, initialize_config_dir  # noqa: E402
-
-import dfvo.inference.loop as loop  # noqa: E402
-import dfvo.inference.timing as timing  # noqa: E402
-from dfvo.inference.config import typed  # noqa: E402
-from dfvo.inference.pipeline import resolve_device, run_inference  # noqa: E402
-
 DEFAULT_KITTI = REPO.parent / "shared" / "data" / "kitti_odom"
 
 
@@ -160,7 +158,7 @@ def section_infer(args: argparse.Namespace, device: str) -> dict[str, Any]:
 
 
 def _trajectory(summary: dict[str, Any]) -> np.ndarray:
-    from dfvo.eval.trajectory_io import read_kitti_poses
+    from dfvo.io.trajectory import read_kitti_poses
 
     return read_kitti_poses(summary["pose_file"])
 

@@ -77,10 +77,9 @@ kitti="${DFVO_KITTI_ODOM_ROOT:-}"
 [[ -z "$kitti" && -d "$PACKED/sequences/06" ]] && kitti="$PACKED"
 [[ -z "$kitti" ]] && kitti="$REPO/../shared/data/kitti_odom"
 mkdir -p "$OUT_DIR"
-export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"
 # 8 minutes in all: the check itself gets what the set-up left, less a margin
 budget=$(( ${GPU_CHECK_BUDGET_S:-480} - ($(date +%s) - start) - 20 ))
 status=0
-timeout "$budget" "$PY" benchmarks/gpu_check.py --kitti-root "$kitti" --out "$OUT_DIR/gpu_check.json" "$@" || status=$?
+timeout "$budget" "$PY" -m benchmarks.gpu_check --kitti-root "$kitti" --out "$OUT_DIR/gpu_check.json" "$@" || status=$?
 [[ $status -eq 124 ]] && echo "gpu_check: stopped after ${budget} s; $OUT_DIR/gpu_check.json holds the finished sections" >&2
 exit $status

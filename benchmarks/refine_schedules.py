@@ -19,25 +19,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from kitti_flow_quality import fundamental_from_pose  # noqa: E402
-
-from dfvo.data.kitti_odometry import KittiOdometry  # noqa: E402
-from dfvo.geometry.two_view import sampson_sq  # noqa: E402
-from dfvo.matching import flow_refinement as fr  # noqa: E402
-from dfvo.matching.consistency import forward_backward_inconsistency  # noqa: E402
-from dfvo.matching.selection import select_correspondences  # noqa: E402
-from dfvo.sources import find_checkpoint  # noqa: E402
-from dfvo.sources.networks import NetworkFlow  # noqa: E402
+from dfvo.data.kitti_odometry import KittiOdometry
+from dfvo.eval.epipolar import fundamental_from_pose
+from dfvo.geometry.two_view import sampson_sq
+from dfvo.matching import flow_refinement as fr
+from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.selection import select_correspondences
+from dfvo.sources import find_checkpoint
+from dfvo.sources.networks import NetworkFlow
 
 
 def _schedule(spec: str) -> fr.FlowRefinementConfig:

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The benchmarks behind the README's "Status and measured numbers" section, in one go (~3 min on the 2-core CPU,
-# idle; the flow-quality numbers come from benchmarks/kitti_flow_quality.py, the ablations from scripts/run_ablation.sh).
+# The speed benchmarks behind the README's "Status and measured numbers" section, in one go (~3 min on the 2-core CPU,
+# idle); the accuracy studies are studies/run_all.sh (and studies/kitti_flow_quality.py, studies/flow_vs_classical.py),
+# the ablations scripts/run_ablation.sh.
 # Each benchmark's JSON goes to OUT/NAME.json (stderr to OUT/NAME.err); the KITTI runs need ../shared/data.
 #
 #   benchmarks/run_all.sh [OUT]        # default OUT: runs/bench
@@ -33,10 +34,3 @@ run flow_net python benchmarks/flow_net.py --skip-eval
 run tracker python benchmarks/tracker.py --threads 2
 run eval_speed python benchmarks/eval_speed.py
 run synthetic_render python benchmarks/synthetic_render.py --frames 10 --threads 2
-run depth_scale python benchmarks/depth_scale_consistency.py
-if python infer.py data=kitti_odom data.root="$KITTI" seq=06 out_dir="$OUT/kitti06" progress=false >"$OUT/kitti06.log" 2>&1
-then
-    run error_decomposition python benchmarks/error_decomposition.py --gt "$KITTI/poses/06.txt" --pred "$OUT/kitti06/06.txt"
-else
-    echo "infer.py on KITTI 06 failed: see $OUT/kitti06.log" >&2
-fi

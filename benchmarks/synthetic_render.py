@@ -26,7 +26,7 @@ import time
 
 import torch
 
-from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticWorld
+from dfvo.synthetic import SyntheticFlowDataset, SyntheticWorld
 
 
 def _cpu_name() -> str:

@@ -91,7 +91,7 @@ def summary(values: torch.Tensor) -> dict[str, float]:
 
 
 def odometry(frames: int, batch: int) -> dict:
-    from dfvo.data.synthetic import SyntheticWorld
+    from dfvo.synthetic import SyntheticWorld
 
     w = SyntheticWorld(seed=0, num_frames=frames, scenario="straight")
     rendered = [w.render(i) for i in range(len(w) - 1)]

@@ -21,18 +21,15 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import sys
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, CheckpointError, load_weights, save_weights  # noqa: E402
-from dfvo.models.depth_net import DepthNet  # noqa: E402
-from dfvo.models.flow_net import FlowNet  # noqa: E402
-from dfvo.sources.networks import VARIANTS  # noqa: E402
-from dfvo.training.export import weights_metadata  # noqa: E402
+from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, CheckpointError, load_weights, save_weights
+from dfvo.models.depth_net import DepthNet
+from dfvo.models.flow_net import FlowNet
+from dfvo.sources.networks import VARIANTS
+from dfvo.training.export import weights_metadata
 
 
 def _checkpoint_info(path: Path) -> dict:

@@ -54,10 +54,10 @@ echo "training wall time: $(( $(date +%s) - start )) s"
 weights="$RUNS_DIR/$NAME/weights.safetensors"
 [ "$EVAL" = 1 ] || exit 0
 # shellcheck disable=SC2086
-python benchmarks/depth_scale_consistency.py --depth "$weights" --synthetic all $EVAL_ARGS \
+python studies/depth_scale_consistency.py --depth "$weights" --synthetic all $EVAL_ARGS \
   > "$RUNS_DIR/$NAME/scale_synthetic.json"
 if [ -n "$KITTI_ODOM" ] && [ -d "$KITTI_ODOM/sequences/06" ]; then
-  python benchmarks/depth_scale_consistency.py --depth "$weights" --root "$KITTI_ODOM" \
+  python studies/depth_scale_consistency.py --depth "$weights" --root "$KITTI_ODOM" \
     > "$RUNS_DIR/$NAME/scale_kitti06.json"
 fi
 echo "weights: $weights; scale benchmark: $RUNS_DIR/$NAME/scale_*.json"

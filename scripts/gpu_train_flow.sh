@@ -14,7 +14,7 @@
 # saves; with interpreter start-up and the export check the whole script stays under 10 minutes.
 # Needs a CUDA build of torch (the repository's pinned wheel is the CPU one): the full mode stops with one line when
 # torch sees no CUDA device. The result is a candidate, not a shipped model: compare it with
-#   python benchmarks/flow_vs_classical.py --checkpoint OUT/weights.safetensors
+#   python studies/flow_vs_classical.py --checkpoint OUT/weights.safetensors
 # (docs/flow.md) before it replaces dfvo/checkpoints/flow.safetensors.
 #
 # Environment: KITTI_RAW (default /work/shared/data/kitti_raw/2011_09_26; unset or missing -> no self-supervised

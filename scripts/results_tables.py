@@ -44,9 +44,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dfvo.eval.ablation import load_runs
+from dfvo.eval.ablation import table as ablation_table
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import aggregate_ablation  # noqa: E402  (scripts/aggregate_ablation.py: the ablation table itself)
 
 DEFAULT_FILES = (REPO / "README.md", REPO / "docs" / "results.md")
 MARKER = re.compile(r"<!-- results:(?P<name>[a-z0-9_]+) -->\n(?P<body>.*?)<!-- /results:(?P=name) -->", re.DOTALL)
@@ -389,10 +390,10 @@ def table_ablation(name: str, inputs: Inputs) -> str:
     folder = inputs.ablation_dirs.get(name, inputs.ablations / name)
     if not folder.is_dir() or not any(folder.rglob("summary.json")):
         raise MissingInput(f"no summary.json under {folder} (run `{ABLATIONS[name]}`)")
-    runs = aggregate_ablation.load_runs([folder])
+    runs = load_runs([folder])
     records = [Measured(Path(r["_path"]) / "summary.json", r, _date(r, Path(r["_path"]) / "summary.json"),
                         _machine(r, inputs.machine)) for r in runs]
-    text = aggregate_ablation.table(runs, fallback=True, reference=True).rstrip("\n")
+    text = ablation_table(runs, fallback=True, reference=True).rstrip("\n")
     return f"{text}\n\nMeasured {measured_on(records)}; `{ABLATIONS[name]}`."
 
 

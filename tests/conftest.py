@@ -1,9 +1,11 @@
-"""Shared test fixtures: the location of ../shared data (tests that need it skip when it is absent)."""
+"""Shared test fixtures: the location of ../shared data (tests that need it skip when it is absent), the KITTI 00
+trajectories of evo's tests."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -35,3 +37,24 @@ def kitti_raw_root() -> Path:
 def kitti_poses_full() -> Path:
     """``../shared/data/kitti_odom/poses_full`` (official GT poses 00-10)."""
     return _require(SHARED_DATA / "kitti_odom" / "poses_full")
+
+
+KITTI00_EVO = SHARED_DATA / "trajectories" / "kitti00_evo"
+
+
+@pytest.fixture(scope="session")
+def kitti00() -> dict[str, Path]:
+    """``{"gt", "times", "orb", "sptam"}``: KITTI 00 ground truth (4541 poses), its timestamps, and the ORB-SLAM
+    and S-PTAM estimates, as published with evo's tests."""
+    files = {"gt": "KITTI_00_gt.txt", "times": "KITTI_00_gt_times.txt", "orb": "KITTI_00_ORB.txt",
+             "sptam": "KITTI_00_SPTAM.txt"}
+    out = {k: KITTI00_EVO / v for k, v in files.items()}
+    missing = [p for p in out.values() if not p.is_file()]
+    if missing:
+        pytest.skip(f"needs {missing[0]} (the project's ../shared data folder); not present on this machine")
+    return out
+
+
+@pytest.fixture(scope="session")
+def kitti00_times(kitti00) -> np.ndarray:
+    return np.loadtxt(kitti00["times"])

@@ -11,14 +11,26 @@ typed schema is :class:`EvaluateConfig`. It creates no run folder and no log fil
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import hydra
 from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from dfvo.cli.errors import one_line
+from dfvo.eval.alignment import ALIGN_MODES
+from dfvo.eval.report import evaluate_sequences, format_table, sequence_name
+from dfvo.io.json_io import write_json
+from dfvo.io.trajectory import FORMATS
+from dfvo.source_eval.config import DepthEvalConfig, FlowEvalConfig
+from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table
+from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table
 
 TASKS = ("odometry", "flow", "depth")
 SCHEMA_NAME = "evaluate_schema"
@@ -26,7 +38,7 @@ SCHEMA_NAME = "evaluate_schema"
 
 @dataclass
 class EvaluateConfig:
-    """Every key of the evaluate command and its default (``evaluate.yaml`` only adds groups and Hydra settings).
+    """Every key of the evaluate command and its default (``evaluate.yaml`` only adds Hydra's settings).
 
     Attributes:
         task: ``odometry`` | ``flow`` | ``depth``.
@@ -45,7 +57,8 @@ class EvaluateConfig:
         gt_times: timestamps of the ground truth (KITTI ``times.txt`` file or a folder of them).
         out: JSON file for the results (None: print only).
         plot_dir: folder for trajectory / segment-error plots (None: no plots).
-        flow: the ``flow/`` group (``task=flow``); depth: the ``depth/`` group (``task=depth``).
+        flow: the settings of ``task=flow`` (:class:`dfvo.source_eval.config.FlowEvalConfig`).
+        depth: the settings of ``task=depth`` (:class:`dfvo.source_eval.config.DepthEvalConfig`).
     """
 
     task: str = "odometry"
@@ -64,8 +77,8 @@ class EvaluateConfig:
     gt_times: str | None = None
     out: str | None = None
     plot_dir: str | None = None
-    flow: Any = None
-    depth: Any = None
+    flow: FlowEvalConfig = field(default_factory=FlowEvalConfig)
+    depth: DepthEvalConfig = field(default_factory=DepthEvalConfig)
 
 
 def register_schema() -> None:
@@ -77,8 +90,6 @@ register_schema()
 
 
 def _names(value: Any) -> list[str] | None:
-    from dfvo.eval.report import sequence_name
-
     if value is None:
         return None
     if OmegaConf.is_config(value):
@@ -99,9 +110,6 @@ def odometry_options(cfg: DictConfig) -> dict:
     Raises:
         ValueError: a missing or contradictory path key or an unknown choice (one line naming the key).
     """
-    from dfvo.eval.alignment import ALIGN_MODES
-    from dfvo.eval.trajectory_io import FORMATS
-
     paths = {}
     for file_key, dir_key in (("gt", "gt_dir"), ("pred", "pred_dir")):
         file_value, dir_value = cfg.get(file_key), cfg.get(dir_key)
@@ -137,7 +145,6 @@ def parse_args(argv: list[str]) -> dict:
     """
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.errors import HydraException
 
     GlobalHydra.instance().clear()
     try:
@@ -153,19 +160,13 @@ def parse_args(argv: list[str]) -> dict:
 
 def _dispatch(cfg: DictConfig) -> dict:
     if cfg.task == "flow":
-        from dfvo.eval.flow_eval import evaluate_flow_task, format_flow_table
-
         result = evaluate_flow_task(cfg)
         print(format_flow_table(result))
         return result
     if cfg.task == "depth":
-        from dfvo.eval.depth_eval import evaluate_depth_task, format_depth_table
-
         result = evaluate_depth_task(cfg)
         print(format_depth_table(result))
         return result
-    from dfvo.eval.report import evaluate_sequences, format_table
-
     options = odometry_options(cfg)
     with warnings.catch_warnings():  # the scale warning is printed once, under the table
         warnings.simplefilter("ignore", UserWarning)
@@ -177,8 +178,6 @@ def _dispatch(cfg: DictConfig) -> dict:
 
 def run(cfg: DictConfig) -> dict:
     """Evaluate for a composed config: dispatch on ``cfg.task``, write ``cfg.out`` (JSON) when set."""
-    from dfvo.io.json_io import write_json
-
     _choice("task", cfg.task, TASKS)
     result = _dispatch(cfg)
     if cfg.out:
@@ -187,12 +186,27 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(config_path="pkg://dfvo.conf.evaluate", config_name="evaluate", version_base="1.3")
-def main(cfg: DictConfig) -> dict:
-    """The command: :func:`run`, with bad input reported as one ``error:`` line and exit status 2."""
+def evaluate_app(cfg: DictConfig) -> dict:
+    """The Hydra task: :func:`run`, with bad input reported as one ``error:`` line and exit status 2."""
     try:
         return run(cfg)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+def main() -> None:
+    """Entry point of ``dfvo-eval`` and ``python -m dfvo.evaluate``: :func:`evaluate_app`, and a command line Hydra
+    cannot compose (an unknown key, a value of the wrong type or choice) reported like other bad input: one
+    ``error:`` line, exit status 2 (``HYDRA_FULL_ERROR=1`` keeps Hydra's own report)."""
+    if os.environ.get("HYDRA_FULL_ERROR"):
+        evaluate_app()
+        return
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises instead of printing its own multi-line report
+    try:
+        evaluate_app()
+    except (HydraException, OmegaConfBaseException) as err:
+        print(f"error: {one_line(err)}", file=sys.stderr)
         sys.exit(2)
 
 

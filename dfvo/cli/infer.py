@@ -21,6 +21,7 @@ from omegaconf import DictConfig
 
 from dfvo.cli.errors import EXPECTED_ERRORS, report_error, run_reporting_errors
 from dfvo.inference.config import register_configs
+from dfvo.inference.pipeline import RunInterrupted, run_inference
 
 __all__ = ["main", "infer_app"]
 
@@ -56,8 +57,6 @@ def infer_app(cfg: DictConfig) -> float | None:
     """The Hydra task: one run of :func:`dfvo.inference.pipeline.run_inference` (one job of a multirun)."""
     previous = _install_handlers()
     try:
-        from dfvo.inference.pipeline import RunInterrupted, run_inference
-
         summary = run_inference(cfg)
     except RunInterrupted as err:
         report_error(TOOL, f"interrupted by {err}; the poses so far, their metrics and plots are written",

@@ -23,7 +23,7 @@ register_configs()
 
 @hydra.main(config_path="pkg://dfvo.conf.train", config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    from dfvo.training.runner import run_training
+    from dfvo.training.runner import run_training  # deferred: Lightning is slow to import; --help is not
 
     try:
         result = run_training(cfg)

@@ -1,4 +1,5 @@
-"""Datasets: KITTI odometry, KITTI raw, image folders, and the synthetic driving world.
+"""Dataset readers: KITTI odometry, KITTI raw, EuRoC, TUM RGB-D, image folders, videos, flow datasets (the synthetic
+world that gives samples with the same keys is :mod:`dfvo.synthetic`).
 
 Sample convention (every dataset returns a dict; the default collate stacks them batch-first):
 

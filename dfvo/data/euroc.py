@@ -38,7 +38,7 @@ from dfvo.data.intrinsics_check import check_intrinsics
 from dfvo.data.sequence import FrameSequence
 from dfvo.data.timed_poses import associate_frames, attach_ground_truth, read_ground_truth, read_rows
 from dfvo.data.transforms import check_working_size
-from dfvo.eval.trajectory_io import read_euroc
+from dfvo.io.trajectory import read_euroc
 
 __all__ = ["EurocCamera", "EurocSequence", "open_euroc", "read_sensor_yaml", "read_euroc_groundtruth"]
 
@@ -128,7 +128,7 @@ def read_frame_list(cam_dir: Path) -> tuple[np.ndarray, list[Path]]:
 
 def read_euroc_groundtruth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``(timestamps (M,) float64 s, T_w_body (M,4,4) float64)`` of ``state_groundtruth_estimate0/data.csv``, read by
-    :func:`dfvo.eval.trajectory_io.read_euroc` (timestamp [ns] -> ``ns * 1e-9`` s, p_RS_R x y z [m], q_RS w x y z;
+    :func:`dfvo.io.trajectory.read_euroc` (timestamp [ns] -> ``ns * 1e-9`` s, p_RS_R x y z [m], q_RS w x y z;
     the further columns are ignored).
 
     Raises:

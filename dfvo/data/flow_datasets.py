@@ -11,7 +11,7 @@ Layouts (``root`` as named; a wrong layout raises an error naming the folder and
     KITTI 2012: training/colored_0/NNNNNN_10.png, NNNNNN_11.png, training/flow_occ|flow_noc/NNNNNN_10.png
     KITTI 2015: training/image_2/NNNNNN_10.png, NNNNNN_11.png, training/flow_occ|flow_noc/NNNNNN_10.png
 
-Samples use the keys of :mod:`dfvo.data` that :class:`~dfvo.data.synthetic.SyntheticFlowDataset` gives and the
+Samples use the keys of :mod:`dfvo.data` that :class:`~dfvo.synthetic.SyntheticFlowDataset` gives and the
 supervised flow module consumes: ``image``, ``image_next`` (3,H,W) float [0,1]; ``flow_fwd`` (2,H,W) flow
 image→image_next on image's pixels, ``flow_fwd_valid`` (1,H,W) bool; ``flow_bwd`` / ``flow_bwd_valid`` the flow
 image_next→image on image_next's pixels where the dataset has it (FlyingThings3D), else zeros with an all-False

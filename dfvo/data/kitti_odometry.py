@@ -18,6 +18,7 @@ Convention:
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -32,14 +33,23 @@ from dfvo.data.calibration import (
 )
 from dfvo.data.image_io import DatasetError, image_size, list_images, read_image, require_dir
 from dfvo.data.transforms import check_working_size, resize_with_intrinsics
-from dfvo.eval.trajectory_io import read_kitti_poses, read_times
+from dfvo.io.trajectory import read_kitti_poses, read_times
 
 CAMERAS = {"color": ("image_2", "image_3", 2, 3), "gray": ("image_0", "image_1", 0, 1)}
+KITTI_ODOM_SEQ = re.compile(r"^\d{1,2}$")  # a KITTI odometry sequence name: 00..21 (one digit accepted)
+
+
+def selects_kitti_odometry(kind: str | None, seq: str | int | None) -> bool:
+    """Whether ``seq`` alone turns the default synthetic data of a run into KITTI odometry (``seq=10``: a sequence
+    number, where the synthetic world's sequences are scenario names); the one home of this rule for the data
+    resolution (:func:`dfvo.inference.frames.resolve_data`) and the camera-height default
+    (:class:`dfvo.inference.config.InferConfig`)."""
+    return kind == "synthetic" and seq is not None and bool(KITTI_ODOM_SEQ.match(str(seq)))
 
 
 def read_times_file(path: str | Path) -> np.ndarray:
     """A KITTI ``times.txt`` (one timestamp in seconds a line) as (N,) float64, read by
-    :func:`dfvo.eval.trajectory_io.read_times`; a malformed line is a :class:`DatasetError` naming file and line."""
+    :func:`dfvo.io.trajectory.read_times`; a malformed line is a :class:`DatasetError` naming file and line."""
     try:
         return read_times(path)
     except ValueError as err:
@@ -100,7 +110,7 @@ class KittiOdometry(Dataset):
         if pose_path.is_file():
             try:
                 poses = read_kitti_poses(pose_path)
-            except ValueError as err:  # the one KITTI pose reader (dfvo.eval.trajectory_io), as a dataset error
+            except ValueError as err:  # the one KITTI pose reader (dfvo.io.trajectory), as a dataset error
                 raise DatasetError(str(err)) from err
             if len(poses) != n_all:
                 raise DatasetError(f"pose file {pose_path} has {len(poses)} poses but {seq_dir / left_name} has "

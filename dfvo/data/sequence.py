@@ -3,7 +3,7 @@
 Convention:
     ``FrameSequence.image(i)`` is (3,H,W) float in [0,1] at the working resolution, ``K`` (3,3) in its pixels,
     ``poses`` (N,4,4) float64 ``T_w_c`` of the camera when ground truth exists (else None; NaN rows for frames without
-    a ground-truth pose), ``world`` the :class:`~dfvo.data.synthetic.SyntheticWorld` for synthetic data (oracle
+    a ground-truth pose), ``world`` the :class:`~dfvo.synthetic.SyntheticWorld` for synthetic data (oracle
     sources need it), ``timestamps`` (N,) float64 seconds of each frame when the dataset has them (else None),
     ``frame_ids`` (N,) the frames' indices in the dataset's own list when a range or step selected them (else None).
 """

@@ -1,14 +1,14 @@
 """Frame lists and their timestamped ground truth: text tables, nearest-timestamp association, unmatched policies.
 
 Used by the EuRoC and TUM RGB-D readers, whose ground truth runs at its own rate (200 Hz, 100 Hz) and over its own
-time span. The ground-truth files themselves are read by :mod:`dfvo.eval.trajectory_io` (``read_euroc``,
-``read_tum``) and frames are paired with poses by :func:`dfvo.eval.alignment.match_timestamps` (nearest timestamp
+time span. The ground-truth files themselves are read by :mod:`dfvo.io.trajectory` (``read_euroc``,
+``read_tum``) and frames are paired with poses by :func:`dfvo.io.association.match_timestamps` (nearest timestamp
 within a tolerance, each pose used once, as evo and the TUM benchmark tools associate); what stays here is the
 part that belongs to datasets: reading the frame lists, and what to do with frames that have no pose.
 
 Convention:
     - Times are float64 seconds. Integer nanoseconds (EuRoC) become seconds as ``ns * 1e-9`` on both sides, the
-      conversion :func:`dfvo.eval.trajectory_io.read_euroc` applies to the ground truth, so equal nanosecond stamps
+      conversion :func:`dfvo.io.trajectory.read_euroc` applies to the ground truth, so equal nanosecond stamps
       stay equal; the float64 seconds resolve ~0.25 us at EuRoC's epoch times, far below any tolerance used.
     - ``unmatched`` policy for frames without a ground-truth pose within the tolerance:
       ``"trim"`` drops the frames before the first and after the last matched frame (ground truth often starts
@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from dfvo.data.image_io import DatasetError, require_file
+from dfvo.io.association import match_timestamps
 
 __all__ = ["UNMATCHED_POLICIES", "read_rows", "parse_floats", "read_ground_truth", "associate_frames",
            "attach_ground_truth"]
@@ -68,7 +69,7 @@ def parse_floats(fields: list[str], path: Path | str, lineno: int, what: str) ->
 
 
 def read_ground_truth(path: str | Path, reader: Callable, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(timestamps (M,) s, poses (M,4,4))`` of a ground-truth file read by an :mod:`dfvo.eval.trajectory_io`
+    """``(timestamps (M,) s, poses (M,4,4))`` of a ground-truth file read by an :mod:`dfvo.io.trajectory`
     reader (``read_euroc``, ``read_tum``); its errors become :class:`DatasetError` naming ``what``.
 
     Raises:
@@ -85,7 +86,7 @@ def read_ground_truth(path: str | Path, reader: Callable, what: str) -> tuple[np
 
 def associate_frames(frame_times_s: np.ndarray, gt_times_s: np.ndarray, tolerance_s: float) -> np.ndarray:
     """For each frame, the index of its ground-truth pose (nearest time within ``tolerance_s``, each pose used by
-    one frame: :func:`dfvo.eval.alignment.match_timestamps`), or -1.
+    one frame: :func:`dfvo.io.association.match_timestamps`), or -1.
 
     Args:
         frame_times_s: (N,) frame times in seconds. gt_times_s: (M,) ground-truth times in seconds (any order).
@@ -94,8 +95,6 @@ def associate_frames(frame_times_s: np.ndarray, gt_times_s: np.ndarray, toleranc
     Returns:
         (N,) int64 indices into the ground truth (-1: no pose within the tolerance).
     """
-    from dfvo.eval.alignment import match_timestamps
-
     match = np.full(len(frame_times_s), -1, dtype=np.int64)
     i_frame, i_gt = match_timestamps(np.asarray(frame_times_s, np.float64), np.asarray(gt_times_s, np.float64),
                                      float(tolerance_s))

@@ -34,8 +34,8 @@ from dfvo.data.intrinsics_check import check_intrinsics
 from dfvo.data.sequence import FrameSequence
 from dfvo.data.timed_poses import associate_frames, attach_ground_truth, parse_floats, read_ground_truth, read_rows
 from dfvo.data.transforms import check_working_size
-from dfvo.eval.trajectory_io import read_tum
 from dfvo.geometry.camera import intrinsics_matrix
+from dfvo.io.trajectory import read_tum
 
 __all__ = ["TUM_CAMERAS", "TumRgbdSequence", "open_tum", "tum_camera_from_name", "read_tum_groundtruth"]
 
@@ -73,7 +73,7 @@ def read_frame_list(root: Path) -> tuple[np.ndarray, list[Path]]:
 
 def read_tum_groundtruth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``(timestamps (M,) s, T_w_cam (M,4,4))`` of a TUM ``groundtruth.txt`` (``t tx ty tz qx qy qz qw``), read by
-    :func:`dfvo.eval.trajectory_io.read_tum` (sorted by time).
+    :func:`dfvo.io.trajectory.read_tum` (sorted by time).
 
     Raises:
         DatasetNotFoundError: the file does not exist. DatasetError: a malformed line (file and line named).

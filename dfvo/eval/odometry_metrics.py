@@ -3,7 +3,7 @@
 Convention:
     Poses are ``T_w_c`` ``(N,4,4)``, frame ``k`` of the prediction matching frame ``k`` of ground truth; an
     optional ``valid`` ``(N,)`` mask marks the frames that have a prediction (sparse or prefix predictions laid
-    on the ground truth's frames by :func:`dfvo.eval.alignment.associate_trajectories`).
+    on the ground truth's frames by :func:`dfvo.io.association.associate_trajectories`).
     KITTI protocol (``evaluate_odometry.cpp`` of the KITTI devkit): cumulative GT path length ``dist`` over all
     ground-truth frames; for every start frame ``first = 0, 10, 20, ...`` and length ``L in 100..800 m`` the end
     frame is the first ``i`` with ``dist[i] > dist[first] + L`` (segment skipped if none, or if ``first`` or

@@ -4,7 +4,7 @@ Convention:
     A sequence is a pair of files: ``pred_dir/<seq>.<ext>`` and ``gt_dir/<seq>.<ext>`` (``ext`` one of
     :data:`TRAJECTORY_SUFFIXES`), or ``gt_dir/<seq>/`` as a dataset folder (EuRoC ``mav0/``, TUM RGB-D
     ``groundtruth.txt``); or two single files. Files are read in ``format`` (``auto`` by content) and paired by
-    :func:`dfvo.eval.alignment.associate_trajectories`; how they were paired is stated per sequence. The
+    :func:`dfvo.io.association.associate_trajectories`; how they were paired is stated per sequence. The
     ``average`` entry is the plain mean over sequences (not weighted by length) of each metric that has a value;
     sequences listed in ``exclude`` stay in the per-sequence output but not in the average.
 """
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dfvo.eval.alignment import associate_trajectories
 from dfvo.eval.odometry_metrics import aligned_prediction, evaluate_trajectory
-from dfvo.eval.trajectory_io import (
+from dfvo.io.association import associate_trajectories
+from dfvo.io.trajectory import (
     FORMATS,
     Trajectory,
     detect_format,
@@ -145,7 +145,7 @@ def evaluate_sequences(gt_dir: str | Path, pred_dir: str | Path, seqs: list[str]
                    association=assoc.as_dict())
         results[seq] = res
         if plot_dir is not None:
-            from dfvo.eval.plots import plot_segment_errors, plot_trajectory
+            from dfvo.eval.plots import plot_segment_errors, plot_trajectory  # deferred: matplotlib, only for plots
 
             gt0, _, aligned, _ = aligned_prediction(assoc.gt, assoc.pred, align, assoc.valid)
             plot_trajectory(gt0, aligned[assoc.valid], Path(plot_dir) / f"{seq}_trajectory.png",

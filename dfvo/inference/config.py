@@ -18,6 +18,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from dfvo.data.kitti_odometry import selects_kitti_odometry
 from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
 from dfvo.tracking.config import TrackerConfig
 from dfvo.training.online_flow import OnlineFlowConfig
@@ -70,7 +71,7 @@ class DataConfig:
 
 @dataclass
 class SyntheticDataConfig(DataConfig):
-    """The built-in synthetic world (:class:`dfvo.data.synthetic.SyntheticWorld`); ``seq`` is the scenario (drive,
+    """The built-in synthetic world (:class:`dfvo.synthetic.SyntheticWorld`); ``seq`` is the scenario (drive,
     city, straight, highway, still, rotation, planar, moving_car); ``speed`` (metres per frame, a value or a
     ``[low, high]`` range drawn per world; null: the scenario's default) and ``turn_rate`` (degrees per frame, the
     same) reshape the street scenarios. Seeds >= 1000 are never used for training (held-out worlds)."""
@@ -251,8 +252,6 @@ class InferConfig:
             raise ValueError(f"batch_size={self.batch_size}; expected a positive number of frame pairs")
         height = self.data.get("camera_height") if isinstance(self.data, DictConfig) else \
             getattr(self.data, "camera_height", None)
-        from dfvo.inference.frames import selects_kitti_odometry
-
         kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)
         if selects_kitti_odometry(kind, self.seq):
             height = KittiOdomDataConfig.camera_height  # `seq=NN` alone runs KITTI odometry (frames.resolve_data)

@@ -4,7 +4,7 @@ at the working size.
 Convention (of the sequence):
     ``FrameSequence.image(i)`` is (3,H,W) float in [0,1] at the working resolution, ``K`` (3,3) in its pixels,
     ``poses`` (N,4,4) float64 ``T_w_c`` of the left camera when ground truth exists (else None), ``world`` the
-    :class:`~dfvo.data.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it), ``timestamps``
+    :class:`~dfvo.synthetic.SyntheticWorld` for ``data=synthetic`` (oracle sources need it), ``timestamps``
     (N,) float64 seconds of each frame when the dataset has them (else None), ``frame_ids`` (N,) the frames'
     indices in the dataset's own list when a range or step selected them (else None).
 """
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -21,7 +20,19 @@ from typing import Any
 import numpy as np
 import torch
 
+from dfvo.data.euroc import open_euroc
+from dfvo.data.image_folder import ImageFolder
+from dfvo.data.kitti_odometry import KittiOdometry, selects_kitti_odometry
+from dfvo.data.kitti_raw import KittiRawSnippets
 from dfvo.data.sequence import FrameSequence
+from dfvo.data.transforms import resize_image
+from dfvo.data.tum_rgbd import open_tum
+from dfvo.data.video import open_video
+from dfvo.data.working_size import aspect_change, working_size
+from dfvo.geometry.camera import resize_intrinsics
+from dfvo.inference.config import DATA_SCHEMAS, KittiOdomDataConfig
+from dfvo.inference.ground_truth import attach_ground_truth
+from dfvo.synthetic import KITTI_HW, SyntheticWorld
 
 __all__ = ["FrameSequence", "build_sequence", "resolve_data", "working_hw", "at_working_size", "DATA_ROOT_ENV"]
 
@@ -29,14 +40,7 @@ log = logging.getLogger("dfvo.data")
 
 # dataset kind -> environment variable that gives its root once for all commands
 DATA_ROOT_ENV = {"kitti_odom": "DFVO_KITTI_ODOM_ROOT", "kitti_raw": "DFVO_KITTI_RAW_ROOT"}
-KITTI_ODOM_SEQ = re.compile(r"^\d{1,2}$")
 SYNTHETIC_FRAME_PERIOD_S = 0.1  # the synthetic camera runs at KITTI's 10 Hz
-
-
-def selects_kitti_odometry(kind: str | None, seq: str | int | None) -> bool:
-    """Whether ``seq`` alone turns the default synthetic data into KITTI odometry (``seq=10``: a sequence number,
-    where the synthetic world's sequences are scenario names)."""
-    return kind == "synthetic" and seq is not None and bool(KITTI_ODOM_SEQ.match(str(seq)))
 
 
 def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
@@ -58,8 +62,6 @@ def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
         ValueError: a dataset that needs a root has neither ``data.root`` nor its environment variable (one line
             saying how to set it).
     """
-    from dfvo.inference.config import KittiOdomDataConfig
-
     name = None if seq is None else str(seq)
     if selects_kitti_odometry(data.kind, name):
         data = KittiOdomDataConfig(start=data.start, end=data.end)
@@ -81,8 +83,6 @@ def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
 def working_hw(img_res: Any, native_hw: tuple[int, int]) -> tuple[int, int]:
     """The working (height, width) that ``img_res`` (see :class:`dfvo.inference.config.ImgResConfig`) gives frames of
     ``native_hw``."""
-    from dfvo.data.working_size import working_size
-
     h, w, scale = img_res.height, img_res.width, getattr(img_res, "scale", None)
     if scale is not None:
         if h is not None or w is not None:
@@ -103,10 +103,6 @@ def working_hw(img_res: Any, native_hw: tuple[int, int]) -> tuple[int, int]:
 def at_working_size(seq: FrameSequence, hw: tuple[int, int]) -> FrameSequence:
     """``seq`` with its frames resized to ``hw`` (bilinear, :func:`dfvo.data.transforms.resize_with_intrinsics`) and
     its intrinsics following exactly; a change of aspect ratio beyond 2 % is logged once."""
-    from dfvo.data.transforms import resize_image
-    from dfvo.data.working_size import aspect_change
-    from dfvo.geometry.camera import resize_intrinsics
-
     native = tuple(int(v) for v in seq.image(0).shape[-2:])
     if native == tuple(hw):
         return seq
@@ -130,13 +126,10 @@ def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSeque
     Raises:
         ValueError: unknown ``data.kind``, missing root, bad sizes; dataset errors name the path.
     """
-    from dfvo.inference.config import DATA_SCHEMAS
-
     if data.kind not in DATA_SCHEMAS:
         raise ValueError(f"data.kind={data.kind!r}; expected one of {tuple(DATA_SCHEMAS)}")
     data, name = resolve_data(data, seq)
     if data.kind == "synthetic":  # rendered at the working size directly
-        from dfvo.data.synthetic import KITTI_HW
         return _synthetic(data, name, working_hw(img_res, KITTI_HW))
     opened = _open_native(data, name)
     return at_working_size(opened, working_hw(img_res, tuple(opened.image(0).shape[-2:])))
@@ -149,7 +142,6 @@ def _range(data: Any) -> dict[str, int | None]:
 def _open_native(data: Any, name: str | None) -> FrameSequence:
     sel = slice(data.start, data.end, data.step)
     if data.kind == "kitti_odom":
-        from dfvo.data.kitti_odometry import KittiOdometry
         if name is None:
             raise ValueError("data=kitti_odom needs seq=NN (e.g. seq=06)")
         ds = KittiOdometry(data.root, name, camera=data.camera, frames=sel, stereo=False)
@@ -158,16 +150,13 @@ def _open_native(data: Any, name: str | None) -> FrameSequence:
     if data.kind == "kitti_raw":
         return _kitti_raw(data.root, name, sel)
     if data.kind == "euroc":
-        from dfvo.data.euroc import open_euroc
         return open_euroc(data.root, camera=data.camera, undistort=data.undistort, gt_tolerance=data.gt_tolerance,
                           unmatched=data.unmatched, **_range(data))
     if data.kind == "tum":
-        from dfvo.data.tum_rgbd import open_tum
         return open_tum(data.root, fx=data.fx, fy=data.fy, cx=data.cx, cy=data.cy, dist=data.dist,
                         camera=data.camera, undistort=data.undistort, gt_tolerance=data.gt_tolerance,
                         unmatched=data.unmatched, **_range(data))
     if data.kind == "video":
-        from dfvo.data.video import open_video
         _require_intrinsics(data)
         if not data.path:
             raise ValueError("data=video needs data.path=FILE (a video file such as .mp4 or .mkv)")
@@ -187,13 +176,10 @@ def _with_ground_truth(seq: FrameSequence, data: Any) -> FrameSequence:
     """``seq`` with the ground truth of ``data.gt`` (own frames and videos), when given."""
     if not getattr(data, "gt", None):
         return seq
-    from dfvo.inference.ground_truth import attach_ground_truth
-
     return attach_ground_truth(seq, data)
 
 
 def _folder(data: Any, name: str | None, sel: slice) -> FrameSequence:
-    from dfvo.data.image_folder import ImageFolder
     if not data.root:
         raise ValueError("data=folder needs data.root=FOLDER (a folder of PNG/JPEG frames)")
     _require_intrinsics(data)
@@ -205,7 +191,6 @@ def _folder(data: Any, name: str | None, sel: slice) -> FrameSequence:
 
 
 def _synthetic(data: Any, scenario: str | None, hw: tuple[int, int]) -> FrameSequence:
-    from dfvo.data.synthetic import SyntheticWorld
     scenario = scenario or "drive"
     world = SyntheticWorld(seed=data.seed, num_frames=data.num_frames, height=hw[0], width=hw[1],
                            exposure_change=data.exposure_change, noise_std=data.noise_std, scenario=scenario,
@@ -248,7 +233,6 @@ class _OffsetWorld:
 
 
 def _kitti_raw(root: str, seq: str | None, sel: slice) -> FrameSequence:
-    from dfvo.data.kitti_raw import KittiRawSnippets
     drives = [seq] if seq is not None else None
     ds = KittiRawSnippets(root, None, None, drives=drives, stereo=True, temporal=False)
     if len(ds.drives) != 1:

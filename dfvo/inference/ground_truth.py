@@ -19,6 +19,8 @@ from typing import Any
 import numpy as np
 
 from dfvo.data.sequence import FrameSequence
+from dfvo.io.association import match_timestamps
+from dfvo.io.trajectory import read_times, read_trajectory
 
 __all__ = ["attach_ground_truth"]
 
@@ -32,9 +34,6 @@ def attach_ground_truth(seq: FrameSequence, data: Any) -> FrameSequence:
         ValueError: unreadable file, a timestamped ground truth without frame times, a 12-number file with fewer
             poses than frames, or no frame matched.
     """
-    from dfvo.eval.alignment import match_timestamps
-    from dfvo.eval.trajectory_io import read_times, read_trajectory
-
     traj = read_trajectory(data.gt, data.gt_format)
     ids = seq.frame_ids if seq.frame_ids is not None else np.arange(seq.length)
     poses = np.full((seq.length, 4, 4), np.nan)

@@ -1,7 +1,7 @@
 """Files an inference run writes as frames are produced (an interrupted run leaves valid prefixes).
 
 - ``SEQ.txt``: the trajectory, one line per input frame, flushed per line (KITTI or TUM format:
-  :class:`dfvo.eval.trajectory_io.TrajectoryWriter`).
+  :class:`dfvo.io.trajectory.TrajectoryWriter`).
 - ``frames.csv``: one row per frame (frame 0 is the reference, tracker ``init``): the fields of
   :class:`~dfvo.tracking.diagnostics.FrameDiagnostics` and the seconds per stage.
 - ``metrics.json``, ``summary.json``, the plots: at the end (:mod:`dfvo.inference.report`).

@@ -19,16 +19,19 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from dfvo.eval.trajectory_io import TrajectoryWriter
 from dfvo.inference.config import InferConfig, PoseFormat, typed
 from dfvo.inference.frames import build_sequence
 from dfvo.inference.loop import FrameRecord, track_sequence
 from dfvo.inference.outputs import FramesCsv, prepare_out_dir
 from dfvo.inference.report import finish_run
+from dfvo.inference.rerun_observer import RerunObserver
+from dfvo.inference.tb_logging import TensorboardObserver
 from dfvo.inference.timing import StageTimer
+from dfvo.io.trajectory import TrajectoryWriter
 from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, check_sources
 from dfvo.tracking import VisualOdometry
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
+from dfvo.training.online_flow import OnlineFlowFinetuner
 
 __all__ = ["RunInterrupted", "run_inference", "job_output_dir"]
 
@@ -118,8 +121,6 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
     if icfg.online_finetune:
         if not isinstance(flow_src, NetworkFlow):
             raise ValueError(f"online_finetune=true needs flow=network (flow={flow_src.name} cannot be finetuned)")
-        from dfvo.training.online_flow import OnlineFlowFinetuner
-
         finetuner = OnlineFlowFinetuner(flow_src.model, icfg.online)
     observers = _observers(icfg, out, seq)
     extra = {"sources": {"flow": flow_src.name, "depth": depth_src.name,
@@ -136,13 +137,9 @@ def _observers(cfg: InferConfig, out: Path, seq: Any) -> list[Any]:
     if cfg.viewer.kind not in ("none", "rerun"):
         raise ValueError(f"viewer.kind={cfg.viewer.kind!r}; expected 'none' or 'rerun' (viewer=none|rerun)")
     if cfg.viewer.kind == "rerun":
-        from dfvo.inference.rerun_observer import RerunObserver
-
         hw = tuple(seq.image(0).shape[-2:])
         observers.append(RerunObserver(out / "run.rrd", seq.K, hw, gt_poses=seq.poses, spawn=cfg.viewer.spawn))
     if cfg.tensorboard.enabled:
-        from dfvo.inference.tb_logging import TensorboardObserver
-
         observers.append(TensorboardObserver(out / "tensorboard", cfg.tensorboard.every))
     return observers
 

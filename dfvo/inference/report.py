@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from dfvo.data.sequence import FrameSequence
+from dfvo.eval.odometry_metrics import aligned_prediction, evaluate_trajectory
 from dfvo.inference.outputs import fallback_summary
 from dfvo.inference.timing import StageTimer
 from dfvo.io.json_io import write_json
@@ -67,7 +68,7 @@ def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiag
     Returns:
         The summary (as written).
     """
-    from dfvo.eval import aligned_prediction, evaluate_trajectory, plot_frames, plot_trajectory
+    from dfvo.eval.plots import plot_frames, plot_trajectory  # deferred: matplotlib, once per run
 
     tracked = len(diagnostics)
     summary: dict[str, Any] = {

@@ -21,6 +21,7 @@ from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.scale import triangulated_depths
+from dfvo.viewer.rerun_recorder import RerunRecorder
 
 __all__ = ["RerunObserver", "triangulated_inliers"]
 
@@ -54,8 +55,6 @@ class RerunObserver:
 
     def __init__(self, path: Path, K: torch.Tensor, image_hw: tuple[int, int], gt_poses: np.ndarray | None = None,
                  spawn: bool = False) -> None:
-        from dfvo.viewer import RerunRecorder
-
         self.K = K.detach().cpu()
         self.recorder = RerunRecorder(path, self.K, image_hw, spawn=spawn, gt_poses=gt_poses)
         self.T_w_prev = np.eye(4)

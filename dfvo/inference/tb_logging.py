@@ -11,7 +11,7 @@ import torch
 
 from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
-from dfvo.training.flow_viz import flow_to_color, scalar_to_color
+from dfvo.vis.colour import flow_to_color, scalar_to_color
 
 __all__ = ["TensorboardObserver"]
 

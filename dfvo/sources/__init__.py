@@ -13,6 +13,7 @@ from typing import Any
 from dfvo.io.checkpoint import CheckpointError, find_checkpoint, load_weights
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.sources.config import DepthSourceConfig, DepthSourceKind, FlowSourceConfig, FlowSourceKind
+from dfvo.sources.dis import DISFlow
 from dfvo.sources.networks import NetworkDepth, NetworkFlow
 from dfvo.sources.oracle import OracleDepth, OracleFlow
 
@@ -88,8 +89,6 @@ def build_flow_source(cfg: FlowSourceConfig, world: Any = None, device: str = "c
         return NetworkFlow(find_checkpoint(cfg.checkpoint, "flow.checkpoint"), cfg.variant, device=device,
                            input_size=cfg.input_size)
     if kind == FlowSourceKind.dis:
-        from dfvo.sources.dis import DISFlow
-
         return DISFlow(preset=cfg.preset, device=device)
     raise ValueError(f"flow.source={kind!r}; expected one of {[k.value for k in FlowSourceKind]}")
 

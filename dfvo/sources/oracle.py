@@ -1,7 +1,7 @@
 """Oracle sources: the exact flow and depth of the synthetic world (to separate learning from geometry errors).
 
 Convention:
-    Frames are identified by their index in the :class:`~dfvo.data.synthetic.SyntheticWorld`; the images passed
+    Frames are identified by their index in the :class:`~dfvo.synthetic.SyntheticWorld`; the images passed
     in are only used to check shapes (the answer comes from the world's ground truth, not from pixels).
     Flow (B,2,H,W) in pixels (``flow_i->j(x)`` = position in j minus x), depth (B,1,H,W) in metres (sky =
     ``SKY_DEPTH``, which the tracker's depth range removes).
@@ -16,7 +16,7 @@ import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 if TYPE_CHECKING:
-    from dfvo.data.synthetic import SyntheticWorld
+    from dfvo.synthetic import SyntheticWorld
 
 __all__ = ["OracleFlow", "OracleDepth"]
 

@@ -175,7 +175,7 @@ class FlowModelConfig:
     loss: FlowLossConfig = field(default_factory=FlowLossConfig)
 
     def __post_init__(self) -> None:
-        from dfvo.models.flow_net import FlowNetConfig
+        from dfvo.models.flow_net import FlowNetConfig  # deferred: torch; composing a config needs none
 
         if self.task != "flow":
             raise ValueError(f"model.task={self.task!r}; the flow schema (model/schema/flow) trains task 'flow'")

@@ -77,7 +77,7 @@ class DataConfig:
 
 @dataclass
 class WorldsDataConfig(DataConfig):
-    """Synthetic training worlds (:mod:`dfvo.data.synthetic`): ``seeds`` (one world each, below 1000: seeds >= 1000
+    """Synthetic training worlds (:mod:`dfvo.synthetic`): ``seeds`` (one world each, below 1000: seeds >= 1000
     are held-out evaluation worlds), ``num_frames`` each, ``scenario`` (names; seed s gets ``scenario[s % len]``),
     ``speed``/``turn_rate`` (null: the scenario's; ``[v]`` or a range ``[lo, hi]`` drawn per world), ``device``
     (``cuda``: render on the GPU, with ``num_workers: 0``), ``frame_skips`` (depth: snippets (k-s, k, k+s); flow:

@@ -29,6 +29,10 @@ import torch
 from omegaconf import DictConfig
 from torch.utils.data import ConcatDataset, DataLoader, Dataset, DistributedSampler, Subset, default_collate
 
+from dfvo.data.flow_datasets import build_flow_dataset
+from dfvo.data.kitti_odometry import KittiOdometry
+from dfvo.data.kitti_raw import KittiRawSnippets
+from dfvo.synthetic import SyntheticFlowDataset, SyntheticSequenceDataset, check_training_seeds
 from dfvo.training.config import (
     DataConfig,
     FlowMode,
@@ -88,7 +92,6 @@ class DFVODataModule(L.LightningDataModule):
                              f"...), or model=flow_self for real video (e.g. model=flow_self data={self.name} "
                              "model.init_from=<a flow_supervised weights.safetensors or last.ckpt>)")
         if isinstance(self.data, WorldsDataConfig):
-            from dfvo.data.synthetic import check_training_seeds
             check_training_seeds(self.data.seeds, "data.seeds")
             if self.data.device != "cpu" and self.data.num_workers > 0:
                 raise ValueError(f"data.device={self.data.device} renders in the main process; set "
@@ -115,7 +118,6 @@ class DFVODataModule(L.LightningDataModule):
     def _synthetic(self, seeds: list[int], num_frames: int, frame_skips: list[int], train: bool = True) -> Dataset:
         """Synthetic worlds: the training distribution (scenario, speed, turn rate of ``data``) when ``train``, else
         the default worlds (validation stays comparable across training settings)."""
-        from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticSequenceDataset
         d = self.data
         cls = SyntheticFlowDataset if self.task == "flow" else SyntheticSequenceDataset
         world: dict[str, Any] = {"device": d.device} if isinstance(d, WorldsDataConfig) else {}
@@ -131,7 +133,6 @@ class DFVODataModule(L.LightningDataModule):
         return self.task == "depth" and bool(getattr(self.model, "stereo", False))
 
     def _kitti_raw(self, data: KittiRawDataConfig | KittiRawSyntheticDataConfig) -> Dataset:
-        from dfvo.data.kitti_raw import KittiRawSnippets
         root = data_root(data)
         drives = list(data.drives) if data.drives else None
         stereo, skips = self._need_stereo(), self.frame_skips
@@ -150,7 +151,6 @@ class DFVODataModule(L.LightningDataModule):
         return snippets if stereo else _DropKeys(snippets, ("image_right", "T_right_left"))
 
     def _kitti_odom(self, data: KittiOdomDataConfig) -> Dataset:
-        from dfvo.data.kitti_odometry import KittiOdometry
         root = data_root(data)
         seqs = [str(s) for s in data.sequences]
         try:
@@ -164,7 +164,6 @@ class DFVODataModule(L.LightningDataModule):
             raise type(err)(f"data=kitti_odom (data.root={root}, sequences={seqs}): {err}") from err
 
     def _flow_pairs(self, split: str, train: bool) -> Dataset:
-        from dfvo.data.flow_datasets import build_flow_dataset
         data = dataclasses.replace(self.data, root=data_root(self.data))
 
         def get(key: str, default: Any) -> Any:

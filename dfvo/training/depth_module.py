@@ -21,6 +21,7 @@ the weight is > 0 (default 0: the paper's self-supervised loss alone).
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import lightning as L
@@ -29,6 +30,7 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
 from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
+from dfvo.io.checkpoint import load_weights, read_state_dict
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.depth_supervision import log_depth_l1
 from dfvo.losses.photometric import min_over_views, ssim_l1_error
@@ -81,10 +83,6 @@ class DepthPoseModule(L.LightningModule):
 
     def _init_weights_from(self, path: str) -> None:
         """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path``."""
-        import logging
-
-        from dfvo.io.checkpoint import load_weights, read_state_dict
-
         load_weights(self.depth_net, path, "depth network DepthNet", "model.init_from")
         if self.pose_net is None:
             return

@@ -23,8 +23,8 @@ from dfvo.io.checkpoint import load_weights
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe, occlusion_mask, self_supervised_flow_loss
 from dfvo.models.flow_net import FlowNet
 from dfvo.training.config import FlowModelConfig, typed
-from dfvo.training.flow_viz import flow_to_color, scalar_to_color
 from dfvo.training.hparams import recorded_config
+from dfvo.vis.colour import flow_to_color, scalar_to_color
 
 
 def load_flow_weights(net: FlowNet, path: str | Path, setting: str = "model.init_from") -> None:

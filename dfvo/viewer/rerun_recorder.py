@@ -20,9 +20,9 @@ Entities (one timeline ``frame`` of frame indices; a second timeline ``time`` in
                                        inlier, red = outlier (yellow when no inlier mask is given)
 ``world/camera/image/tracks``          segments from each correspondence's position in the previous frame
 ``world/points``                       triangulated points in world coordinates (as given: scaled)
-``flow``                               forward flow, colour wheel (:func:`dfvo.training.flow_viz.flow_to_color`)
+``flow``                               forward flow, colour wheel (:func:`dfvo.vis.colour.flow_to_color`)
 ``inconsistency``                      forward-backward inconsistency: black 0 -> white >= ``inconsistency_max``
-                                       pixels, blue = not finite (:func:`dfvo.training.flow_viz.scalar_to_color`)
+                                       pixels, blue = not finite (:func:`dfvo.vis.colour.scalar_to_color`)
 ``diagnostics/<key>``                  each numeric diagnostic as a scalar series (bools as 0/1); each string
                                        diagnostic as a text log; ``tracker`` also as ``diagnostics/tracker_code``
                                        (:data:`TRACKER_CODES`)
@@ -287,9 +287,9 @@ class RerunRecorder:
 
     def _log_images(self, image: Any, flow_fwd: Any, inconsistency: Any, depth: Any, pts_prev: Any, pts_cur: Any,
                     inlier: Any) -> None:
-        import torch
+        import torch  # deferred, with the colour maps that need it: reading a recording (rrd_reader) needs neither
 
-        from dfvo.training.flow_viz import flow_to_color, scalar_to_color
+        from dfvo.vis.colour import flow_to_color, scalar_to_color
 
         rr, rec = self._rr, self.rec
         H, W = self.image_hw

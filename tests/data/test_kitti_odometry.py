@@ -152,7 +152,7 @@ def test_pose_count_mismatch(tmp_path: Path) -> None:
 
 
 def test_pose_file_with_frame_indices_and_malformed_pose_file(tmp_path: Path) -> None:
-    """ROOT/poses/SS.txt goes through the one KITTI pose reader (dfvo.eval.trajectory_io): 13 numbers a line (frame
+    """ROOT/poses/SS.txt goes through the one KITTI pose reader (dfvo.io.trajectory): 13 numbers a line (frame
     index first) read like 12; a bad line is a DatasetError naming the file and the line."""
     make_sequence(tmp_path, n=3, poses=3)
     pose_file = tmp_path / "poses" / "00.txt"
@@ -172,7 +172,7 @@ def test_times_count_mismatch(tmp_path: Path) -> None:
 
 
 def test_malformed_times_file_names_the_line(tmp_path: Path) -> None:
-    """times.txt is read by dfvo.eval.trajectory_io.read_times: a bad line is named by file and line number."""
+    """times.txt is read by dfvo.io.trajectory.read_times: a bad line is named by file and line number."""
     seq = make_sequence(tmp_path, n=3, times=3)
     (seq / "times.txt").write_text("0.0\n1.0e-01 0.2\n2.0e-01\n")
     with pytest.raises(DatasetError, match=r"^times file: .*times.txt:2: expected 1 numbers, got 2"):

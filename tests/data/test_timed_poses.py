@@ -1,5 +1,6 @@
-"""Frames to timestamped ground truth: the association (dfvo.eval's match_timestamps behind associate_frames), the
-ns -> s conversion EuRoC needs, the eval readers' errors as dataset errors, and the unmatched policies."""
+"""Frames to timestamped ground truth: the association (match_timestamps of dfvo.io.association behind
+associate_frames), the ns -> s conversion EuRoC needs, the trajectory readers' errors as dataset errors, and the
+unmatched policies."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 
 from dfvo.data.image_io import DatasetError, DatasetNotFoundError
 from dfvo.data.timed_poses import associate_frames, attach_ground_truth, read_ground_truth
-from dfvo.eval.trajectory_io import read_euroc, read_tum
+from dfvo.io.trajectory import read_euroc, read_tum
 
 
 def brute_force(query: np.ndarray, ref: np.ndarray, tol: float) -> np.ndarray:

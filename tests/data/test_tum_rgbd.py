@@ -12,9 +12,9 @@ from PIL import Image
 
 from dfvo.data.image_io import DatasetError, DatasetNotFoundError
 from dfvo.data.intrinsics_check import IntrinsicsError
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.data.tum_rgbd import TUM_CAMERAS, TumRgbdSequence, open_tum, tum_camera_from_name
 from dfvo.geometry.camera import resize_intrinsics
+from dfvo.synthetic import SyntheticWorld
 
 Rotation = pytest.importorskip("scipy.spatial.transform", reason="SciPy (test-only reference) not installed").Rotation
 cv2 = pytest.importorskip("cv2", reason="OpenCV (test-only reference) not installed")

@@ -16,8 +16,8 @@ from PIL import Image
 from dfvo.data.image_folder import ImageFolder
 from dfvo.data.image_io import DatasetError
 from dfvo.data.intrinsics_check import IntrinsicsError
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.data.video import PYAV_HINT, VideoReader, open_video
+from dfvo.synthetic import SyntheticWorld
 
 av = pytest.importorskip("av", reason='PyAV not installed (pip install "dfvo[video]")')
 

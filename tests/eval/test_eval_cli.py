@@ -17,6 +17,23 @@ from dfvo.evaluate import parse_args
 REPO = Path(__file__).resolve().parents[2]
 
 
+def _cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    """``python -m dfvo.evaluate ARGS`` as a user runs it (exit status, stderr, the files it leaves)."""
+    return subprocess.run([sys.executable, "-m", "dfvo.evaluate", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=120)
+
+
+def evaluate_in_process(*args: str) -> dict:
+    """The command's work for ``ARGS`` in this process (:func:`dfvo.cli.evaluate.run` on the composed config: what it
+    prints and writes); for the success paths, where a subprocess would only add the start-up of Python and torch."""
+    from hydra import compose, initialize_config_module
+
+    from dfvo.cli.evaluate import run
+
+    with initialize_config_module(config_module="dfvo.conf.evaluate", version_base="1.3"):
+        return run(compose(config_name="evaluate", overrides=list(args)))
+
+
 def _line(n: int, step: float) -> np.ndarray:
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, 2, 3] = np.arange(n) * step
@@ -94,7 +111,7 @@ def test_plots_render_png(tmp_path: Path) -> None:
     assert q.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and q.stat().st_size > 1000
 
 
-@pytest.mark.parametrize("flag", ["--help", "-h"])
+@pytest.mark.parametrize("flag", ["--help", pytest.param("-h", marks=pytest.mark.slow)])  # Hydra's alias of --help
 def test_cli_help_prints_usage_and_exits_0(flag: str) -> None:
     proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", flag], cwd=REPO, capture_output=True, text=True,
                           timeout=120)
@@ -105,7 +122,7 @@ def test_cli_help_prints_usage_and_exits_0(flag: str) -> None:
         assert text in proc.stdout, text
 
 
-def test_integer_sequence_ids_get_two_digits(folders, tmp_path: Path) -> None:
+def test_integer_sequence_ids_get_two_digits(folders, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """seqs=[9,10] / exclude=[1] name 09.txt, 10.txt and 01, as infer.py seq=9 writes 09.txt (KittiOdometry)."""
     from dfvo.data.kitti_odometry import KittiOdometry
     from dfvo.evaluate import sequence_name
@@ -119,15 +136,11 @@ def test_integer_sequence_ids_get_two_digits(folders, tmp_path: Path) -> None:
         with pytest.raises(FileNotFoundError, match=rf"sequences[/\\]{sequence_name(seq)}"):
             KittiOdometry(tmp_path / "none", seq)
     gt_dir, pred_dir = folders
-    proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}",
-                           "seqs=[9,10]", "align=none"], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 0, proc.stderr
-    assert " 09 " in proc.stdout and " 10 " in proc.stdout
+    evaluate_in_process(f"gt_dir={gt_dir}", f"pred_dir={pred_dir}", "seqs=[9,10]", "align=none")
+    table = capsys.readouterr().out
+    assert " 09 " in table and " 10 " in table
 
 
-def _cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "dfvo.evaluate", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=120)
 
 
 def test_cli_single_files_write_nothing_else_in_the_working_directory(folders, tmp_path: Path) -> None:
@@ -149,28 +162,29 @@ def test_cli_single_files_write_nothing_else_in_the_working_directory(folders, t
     assert sorted(p.name for p in work.iterdir()) == ["m.json"]
 
 
-def test_cli_prefix_and_timestamped_formats(tmp_path: Path) -> None:
+def test_cli_prefix_and_timestamped_formats(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """A shorter KITTI prediction needs allow_prefix=true and the table says so; a TUM prediction is matched by
     timestamp against a EuRoC ground truth given as its dataset folder (<seq>/mav0/...)."""
-    from dfvo.eval.trajectory_io import write_euroc_poses, write_tum_poses
+    from dfvo.io.trajectory import write_euroc_poses, write_tum_poses
 
     gt, pred = _line(250, 1.0), _pred09()
     write_kitti_poses(tmp_path / "gt" / "09.txt", gt)
     write_kitti_poses(tmp_path / "pred" / "09.txt", pred[:120])
     refused = _cli(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}")
     assert refused.returncode == 2 and "allow_prefix=true" in refused.stderr
-    proc = _cli(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}", "allow_prefix=true", "align=none")
-    assert proc.returncode == 0, proc.stderr
-    assert "09: prefix: the first 120 of 250 ground-truth poses (allow_prefix=true)" in proc.stdout
-    assert " 120 " in proc.stdout  # frames column: the evaluated poses
+    evaluate_in_process(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}", "allow_prefix=true",
+                        "align=none")
+    table = capsys.readouterr().out
+    assert "09: prefix: the first 120 of 250 ground-truth poses (allow_prefix=true)" in table
+    assert " 120 " in table  # frames column: the evaluated poses
 
     stamps = 1403636579.0 + np.arange(250) * 0.05
     write_euroc_poses(tmp_path / "euroc" / "MH_01" / "mav0" / "state_groundtruth_estimate0" / "data.csv", gt, stamps)
     write_tum_poses(tmp_path / "tum" / "MH_01.txt", pred[::2], stamps[::2] + 0.004)
     out = tmp_path / "e.json"
-    proc = _cli(f"gt_dir={tmp_path / 'euroc'}", f"pred_dir={tmp_path / 'tum'}", "align=7dof", f"out={out}")
-    assert proc.returncode == 0, proc.stderr
-    assert "MH_01: 125 of 125 predicted poses matched by timestamp within 0.01 s (250 ground-truth poses" in proc.stdout
+    evaluate_in_process(f"gt_dir={tmp_path / 'euroc'}", f"pred_dir={tmp_path / 'tum'}", "align=7dof", f"out={out}")
+    table = capsys.readouterr().out
+    assert "MH_01: 125 of 125 predicted poses matched by timestamp within 0.01 s (250 ground-truth poses" in table
     res = json.loads(out.read_text())["sequences"]["MH_01"]
     assert res["gt_format"] == "euroc" and res["pred_format"] == "tum"
     direct = evaluate_trajectory(gt[::2], pred[::2], "7dof")
@@ -178,14 +192,12 @@ def test_cli_prefix_and_timestamped_formats(tmp_path: Path) -> None:
     assert res["rpe_m"] == pytest.approx(direct["rpe_m"], rel=1e-6)
 
 
-def test_task_dispatch_is_lazy_and_writes_out(monkeypatch, tmp_path: Path) -> None:
-    """task=flow|depth call dfvo.eval.flow_eval.evaluate_flow_task / depth_eval.evaluate_depth_task with the composed
-    config (shared gt_dir/pred_dir) and the command writes their dict to out=."""
-    import types
-
+def test_task_dispatch_writes_out(monkeypatch, tmp_path: Path) -> None:
+    """task=flow|depth call dfvo.source_eval.flow.evaluate_flow_task / dfvo.source_eval.depth.evaluate_depth_task
+    with the composed config (shared gt_dir/pred_dir) and the command writes their dict to out=."""
     from hydra import compose, initialize_config_module
 
-    from dfvo.cli.evaluate import run
+    import dfvo.cli.evaluate as cli
 
     seen = {}
 
@@ -195,18 +207,24 @@ def test_task_dispatch_is_lazy_and_writes_out(monkeypatch, tmp_path: Path) -> No
             return {"task": task, "value": 1.5}
         return evaluate
 
-    for task, module, func in (("flow", "dfvo.eval.flow_eval", "evaluate_flow_task"),
-                               ("depth", "dfvo.eval.depth_eval", "evaluate_depth_task")):
-        fake = types.ModuleType(module)
-        setattr(fake, func, fake_task(task))
-        setattr(fake, f"format_{task}_table", lambda result: f"table of {result['task']}")
-        monkeypatch.setitem(sys.modules, module, fake)
+    for task in ("flow", "depth"):
+        monkeypatch.setattr(cli, f"evaluate_{task}_task", fake_task(task))
+        monkeypatch.setattr(cli, f"format_{task}_table", lambda result: f"table of {result['task']}")
     with initialize_config_module(config_module="dfvo.conf.evaluate", version_base="1.3"):
         for task in ("flow", "depth"):
             out = tmp_path / f"{task}.json"
             cfg = compose(config_name="evaluate", overrides=[f"task={task}", "gt_dir=G", "pred_dir=P", f"out={out}"])
-            assert run(cfg) == {"task": task, "value": 1.5}
+            assert cli.run(cfg) == {"task": task, "value": 1.5}
             assert seen[task].gt_dir == "G" and seen[task].pred_dir == "P"
             assert json.loads(out.read_text()) == {"task": task, "value": 1.5}
         with pytest.raises(ValueError, match="task=pose: expected one of odometry, flow, depth"):
-            run(compose(config_name="evaluate", overrides=["task=pose"]))
+            cli.run(compose(config_name="evaluate", overrides=["task=pose"]))
+
+
+def test_task_settings_that_do_not_compose_are_one_line() -> None:
+    """The typed flow/depth settings are checked when Hydra composes: a bad value or an unknown key ends, like other
+    bad input, with one ``error:`` line naming the key and exit status 2."""
+    bad = _cli("task=flow", "gt_dir=G", "flow.layout=kitti2020", "depth.network.bogus=1")
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert bad.stderr.startswith("error: ") and "flow.layout=kitti2020" in bad.stderr
+    assert "expected one of [kitti2015, kitti2012]" in bad.stderr

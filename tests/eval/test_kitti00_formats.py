@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dfvo.eval import evaluate_sequences, evaluate_trajectory, read_kitti_poses
-from dfvo.eval.trajectory_io import (
+from dfvo.io.trajectory import (
     quaternion_to_rotation,
     rotation_to_quaternion,
     write_euroc_poses,

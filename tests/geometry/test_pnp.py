@@ -7,6 +7,7 @@ import torch
 from dfvo.geometry.lm import refine_pose_lm
 from dfvo.geometry.pnp import solve_pnp_ransac
 from dfvo.geometry.se3 import pose_from_axis_angle, rotation_error_deg
+from dfvo.synthetic import SyntheticWorld
 
 Hs, Ws = 192, 640
 
@@ -231,12 +232,11 @@ def test_flow_to_pose_chain_on_a_slanted_plane():
 @pytest.mark.parametrize("scenario", ["straight", "rotation"])
 def test_synthetic_world_oracle_flow_and_depth_recover_true_motion(scenario):
     """Rendered oracle flows/depth -> consistency -> selection -> PnP, batched over 3 frame pairs."""
-    synthetic = pytest.importorskip("dfvo.data.synthetic")
     from dfvo.geometry.camera import backproject_points
     from dfvo.matching.consistency import forward_backward_inconsistency
     from dfvo.matching.selection import select_correspondences
 
-    world = synthetic.SyntheticWorld(seed=1, num_frames=4, scenario=scenario)
+    world = SyntheticWorld(seed=1, num_frames=4, scenario=scenario)
     samples = [world.render(i, right=False) for i in range(3)]
     fwd = torch.stack([s["flow_fwd"] for s in samples])
     bwd = torch.stack([s["flow_bwd"] for s in samples])

@@ -10,14 +10,14 @@ import json
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from dfvo.data.synthetic import SyntheticWorld
+from dfvo.eval.ablation import load_runs, table
+from dfvo.synthetic import SyntheticWorld
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 96, 320
@@ -45,8 +45,9 @@ def assert_logged(log: Path, message: str) -> None:
 # ------------------------------------------------------------------------------------------------ multirun out_dir
 def test_multirun_jobs_each_write_a_complete_folder(infer_cli, frames_io, tmp_path: Path) -> None:
     """``-m tracker=hybrid,pnp out_dir=X``: each job writes its own subfolder of X, named by its overrides, with
-    complete files (one 12-number line per frame, one frames.csv row per frame, its own infer.log); nothing is
-    written into X itself or the working folder."""
+    complete files (one 12-number line per frame, one frames.csv row per frame, its own infer.log, the sweep's
+    overrides in summary.json); nothing is written into X itself or the working folder; the ablation table of the
+    sweep has one row per tracker."""
     n, sweep = 4, tmp_path / "X"
     infer_cli("-m", "tracker=hybrid,pnp", f"out_dir={sweep}", f"data.num_frames={n}", *SMALL, *ORACLE, timeout=600)
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
@@ -63,7 +64,13 @@ def test_multirun_jobs_each_write_a_complete_folder(infer_cli, frames_io, tmp_pa
         summary = json.loads((job / "summary.json").read_text())
         assert summary["choices"]["tracker"] == tracker and summary["frames_written"] == n
         assert (job / "infer.log").is_file() and (job / "trajectory.png").is_file()
+        recorded = summary["overrides"]  # the sweep's non-group overrides, as Hydra saw them
+        assert recorded["data.num_frames"] == str(n) and recorded["img_res.height"] == str(H)
+        assert not {"progress", "num_threads", "out_dir", "tracker", "flow", "depth"} & set(recorded)
     assert not (infer_cli.cwd / "outputs").exists()
+    lines = [line for line in table(load_runs([sweep])).splitlines() if line.startswith("| ")]
+    assert lines[0] == "| tracker | synthetic_drive_s0 |"
+    assert {line.split("|")[1].strip() for line in lines[1:]} == {"hybrid", "pnp"}
 
 
 # ------------------------------------------------------------------------------------------------ intrinsics
@@ -216,10 +223,14 @@ def test_interrupted_run_writes_partial_results(infer_cli, frames_io, tmp_path: 
 
 
 # ------------------------------------------------------------------------------------------------ segment plot
-def test_segment_plot_of_a_short_sequence_is_not_an_empty_plot(tmp_path: Path) -> None:
+def test_segment_plot_of_a_short_sequence_is_not_an_empty_plot(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """``dfvo.evaluate ... plot_dir=P`` on a path shorter than 100 m writes no (empty) segment-error plot, removes a
-    stale one, and says why in its table; a path of 100 m or more gets the plot."""
-    from dfvo.eval.trajectory_io import write_kitti_poses
+    stale one, and says why in its table; a path of 100 m or more gets the plot (the command's work, in this process:
+    :func:`dfvo.cli.evaluate.run` on the composed command line)."""
+    from hydra import compose, initialize_config_module
+
+    from dfvo.cli.evaluate import run
+    from dfvo.io.trajectory import write_kitti_poses
 
     for n in (40, 160):  # 1 m per frame: 39 m and 159 m
         T = np.tile(np.eye(4), (n, 1, 1))
@@ -231,13 +242,14 @@ def test_segment_plot_of_a_short_sequence_is_not_an_empty_plot(tmp_path: Path) -
     plots = tmp_path / "plots"
     plots.mkdir()
     (plots / "06_segment_errors.png").write_text("stale")
-    run = [sys.executable, "-m", "dfvo.evaluate", "align=6dof", f"plot_dir={plots}"]
-    proc = subprocess.run([*run, f"gt_dir={tmp_path / 'gt40'}", f"pred_dir={tmp_path / 'pred40'}"], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=300, check=True)
-    assert not (plots / "06_segment_errors.png").exists()
-    assert (plots / "06_trajectory.png").is_file() and "no 100 m segment" in proc.stdout
-    subprocess.run([*run, f"gt_dir={tmp_path / 'gt160'}", f"pred_dir={tmp_path / 'pred160'}"], cwd=tmp_path,
-                   capture_output=True, text=True, timeout=300, check=True)
+    with initialize_config_module(config_module="dfvo.conf.evaluate", version_base="1.3"):
+        for n in (40, 160):
+            run(compose(config_name="evaluate", overrides=["align=6dof", f"plot_dir={plots}",
+                                                          f"gt_dir={tmp_path / f'gt{n}'}",
+                                                          f"pred_dir={tmp_path / f'pred{n}'}"]))
+            if n == 40:
+                assert not (plots / "06_segment_errors.png").exists()
+                assert (plots / "06_trajectory.png").is_file() and "no 100 m segment" in capsys.readouterr().out
     assert (plots / "06_segment_errors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -315,7 +327,8 @@ OTHER_BAD_INPUT = {
     "no intrinsics": (lambda d: ["data=folder", f"data.root={_frames(d, [(96, 320)] * 2)}"],
                       r"data=folder needs data\.fx= \(intrinsics in pixels of the stored frames\)"),
     "KITTI number without root": (lambda d: ["seq=10"], r"KITTI odometry sequence 10 needs the dataset folder: set "
-                                                        r"the environment variable DFVO_KITTI_ODOM_ROOT=ROOT"),
+                                                        r"the environment variable DFVO_KITTI_ODOM_ROOT=ROOT once or "
+                                                        r"pass data\.root=ROOT"),
 }
 
 
@@ -330,3 +343,4 @@ def test_other_bad_input_is_one_line(infer_cli, tmp_path: Path, monkeypatch: pyt
     assert proc.returncode == 1, proc.stderr
     line = error_line(proc)
     assert re.search(pattern, line) and line.endswith(f"[log: {out / 'infer.log'}]"), line
+    assert "Traceback (most recent call last)" in (out / "infer.log").read_text()

@@ -12,11 +12,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.inference.frames import FrameSequence
 from dfvo.inference.loop import track_sequence
 from dfvo.inference.timing import StageTimer
 from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
+from dfvo.synthetic import SyntheticWorld
 from dfvo.tracking import VisualOdometry
 
 H, W, N = 64, 224, 9

@@ -1,5 +1,5 @@
 """Issue 16, robustness: the events a vision user's footage has, each in a short synthetic sequence with exact
-ground truth (``infer.py data=folder`` on PNGs written from :class:`~dfvo.data.synthetic.SyntheticWorld`, or the
+ground truth (``infer.py data=folder`` on PNGs written from :class:`~dfvo.synthetic.SyntheticWorld`, or the
 world itself): a burst of duplicated frames, a dropped frame, exposure steps, a lens cap, a truck filling the view,
 very small parallax. Each run must keep one pose per frame, say in ``frames.csv`` what it did on the event's frames
 (tracker, fallback_reason), and track normally again afterwards.
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
+from dfvo.synthetic import SyntheticWorld
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 96, 320

@@ -23,7 +23,7 @@ def _run(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
 
 
 def _check_recording(out: Path, pose_file: Path, frames: int) -> None:
-    from dfvo.eval.trajectory_io import read_kitti_poses
+    from dfvo.io.trajectory import read_kitti_poses
     from dfvo.viewer import ENTITIES, read_rrd
 
     rec = read_rrd(out / "run.rrd")
@@ -53,6 +53,7 @@ def test_synthetic_default_writes_a_readable_recording(tmp_path: Path) -> None:
     _check_recording(tmp_path, tmp_path / "synthetic_drive_s0.txt", n)
 
 
+@pytest.mark.slow  # the fast cover of the recording: test_synthetic_default_writes_a_readable_recording
 def test_kitti06_writes_a_readable_recording(kitti_odom_root: Path, tmp_path: Path) -> None:
     n = 5
     proc = _run("viewer=rerun", "data=kitti_odom", f"data.root={kitti_odom_root}", "seq=06", f"data.end={n}",

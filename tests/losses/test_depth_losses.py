@@ -5,12 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.geometry.camera import pixel_grid
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.photometric import min_over_views, ssim_l1_error
 from dfvo.losses.reprojection import reproject
 from dfvo.losses.smoothness import edge_aware_smoothness
+from dfvo.synthetic import SyntheticWorld
 
 H, W = 64, 192
 

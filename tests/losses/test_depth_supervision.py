@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from dfvo.data.synthetic import SKY_DEPTH, SyntheticWorld
 from dfvo.losses.depth_supervision import log_depth_l1
+from dfvo.synthetic import SKY_DEPTH, SyntheticWorld
 
 
 @pytest.fixture(scope="module")

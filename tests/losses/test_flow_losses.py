@@ -5,7 +5,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.losses.flow_losses import (
     endpoint_error,
     multiscale_epe,
@@ -14,7 +13,8 @@ from dfvo.losses.flow_losses import (
     self_supervised_flow_loss,
 )
 from dfvo.matching.consistency import forward_backward_inconsistency
-from dfvo.training.flow_viz import flow_to_color, scalar_to_color
+from dfvo.synthetic import SyntheticWorld
+from dfvo.vis.colour import flow_to_color, scalar_to_color
 
 
 def test_endpoint_error_hand_values() -> None:

@@ -10,7 +10,6 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.flow_refinement import (
     FlowRefinementConfig,
@@ -19,6 +18,7 @@ from dfvo.matching.flow_refinement import (
     refine_flow,
     refine_forward_backward,
 )
+from dfvo.synthetic import SyntheticWorld
 
 H, W = 96, 320
 METHODS = ("inverse_compositional", "symmetric")

@@ -9,7 +9,6 @@ import math
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.pyramid_refinement import (
     PyramidRefinementConfig,
@@ -19,6 +18,7 @@ from dfvo.matching.pyramid_refinement import (
     refine_pyramid,
     select_candidates,
 )
+from dfvo.synthetic import SyntheticWorld
 
 H, W = 192, 320
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.sources.dis import MISSING_OPENCV, DISFlow, _to_gray_uint8
+from dfvo.synthetic import SyntheticWorld
 
 cv2 = pytest.importorskip("cv2")
 

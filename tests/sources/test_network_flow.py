@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.io.checkpoint import find_checkpoint
 from dfvo.sources.networks import NetworkFlow
+from dfvo.synthetic import SyntheticWorld
 
 DEFAULT, FAST = "checkpoints/flow.safetensors", "checkpoints/flow_fast.safetensors"
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
+from dfvo.synthetic import SyntheticWorld
 from dfvo.tracking import TrackerConfig, VisualOdometry
 from dfvo.tracking.config import ScaleConfig
 

@@ -66,7 +66,7 @@ def test_triangulated_depth_is_true_depth_over_baseline():
 
 
 def test_iterative_scale_beats_simple_on_a_moving_car():
-    from dfvo.data.synthetic import SyntheticWorld
+    from dfvo.synthetic import SyntheticWorld
 
     w = SyntheticWorld(seed=0, num_frames=8, scenario="moving_car")
     k = 5

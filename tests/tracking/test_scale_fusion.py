@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import dfvo.tracking.odometry as odometry
-from dfvo.data.synthetic import CAMERA_HEIGHT, SyntheticWorld
+from dfvo.synthetic import CAMERA_HEIGHT, SyntheticWorld
 from dfvo.tracking import TrackerConfig, VisualOdometry
 from dfvo.tracking.config import GateConfig, RoadPlaneConfig, ScaleConfig
 from dfvo.tracking.gates import check_length, check_support, image_parallax_px

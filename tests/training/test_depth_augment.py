@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
 from dfvo.losses.photometric import ssim_l1_error
 from dfvo.losses.reprojection import reproject
+from dfvo.synthetic import SyntheticWorld
 from dfvo.training.augment import DepthAugmentConfig, augment_depth_batch, flip_batch, jitter_images
 
 H, W = 64, 192

@@ -8,16 +8,18 @@ import lightning as L
 import pytest
 import torch
 import torch.nn.functional as F
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from torch.utils.data import DataLoader
 
-from dfvo.data.synthetic import SyntheticFlowDataset, SyntheticWorld
 from dfvo.io.checkpoint import CheckpointError
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe
 from dfvo.matching.flow_warp import warp_by_flow
 from dfvo.models.flow_net import FlowNet
+from dfvo.synthetic import SyntheticFlowDataset, SyntheticWorld
 from dfvo.training.flow_module import FlowModule, load_flow_weights
 from dfvo.training.online_flow import OnlineFlowConfig, OnlineFlowFinetuner
+from dfvo.training.runner import run_training
 
 
 def _pairs(n: int, size: int, g: torch.Generator, translation: bool, max_shift: float = 4.0):
@@ -121,18 +123,22 @@ def test_online_finetuning_adapts_then_stops() -> None:
 REPO = Path(__file__).resolve().parents[2]
 
 
+TRAIN_PY_TINY = ["model.variant=tiny", "trainer.max_steps=2", "trainer.max_epochs=1",
+                 "trainer.enable_progress_bar=false", "data.val_num_frames=3", "threads=1"]
+
+
 def _train(tmp_path: Path, *overrides: str) -> Path:
     import subprocess
     import sys
 
-    cmd = [sys.executable, "train.py", "model.variant=tiny", "trainer.max_steps=2", "trainer.max_epochs=1",
-           "trainer.enable_progress_bar=false", "data.val_num_frames=3", "threads=1", f"runs_dir={tmp_path}",
-           *overrides]
+    cmd = [sys.executable, "train.py", *TRAIN_PY_TINY, f"runs_dir={tmp_path}", *overrides]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return tmp_path
 
 
+@pytest.mark.slow  # fast covers: test_train_outputs.py::test_flow_weights_export_runs_in_infer (model=flow_supervised
+# data=synthetic through run_training), test_flow_module_trains_and_logs_images, the train.py entry point of depth
 def test_train_py_flow_supervised(tmp_path: Path) -> None:
     """`python train.py model=flow_supervised data=synthetic` with tiny settings writes checkpoints and logs."""
     _train(tmp_path, "model=flow_supervised", "data=synthetic", "data.height=64", "data.width=96",
@@ -141,11 +147,15 @@ def test_train_py_flow_supervised(tmp_path: Path) -> None:
     assert list((tmp_path / "flow_supervised_synthetic").rglob("events.out.tfevents.*"))
 
 
-def test_train_py_flow_self_on_kitti_raw(tmp_path: Path, kitti_raw_root: Path) -> None:
-    """`python train.py model=flow_self data=kitti_raw data.frame_skips=[1,2,3]` on ../shared/data/kitti_raw with tiny
-    settings (2 shuffled steps over the snippets of every gap)."""
-    _train(tmp_path, "model=flow_self", "data=kitti_raw", f"data.root={kitti_raw_root.parent}", "data.height=64",
-           "data.width=192", "data.batch_size=2", "data.frame_skips=[1,2,3]")
+def test_flow_self_on_kitti_raw(tmp_path: Path, kitti_raw_root: Path) -> None:
+    """`model=flow_self data=kitti_raw data.frame_skips=[1,2,3]` on ../shared/data/kitti_raw with tiny settings (2
+    shuffled steps over the snippets of every gap), run in this process as train.py runs it."""
+    with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "train"), version_base="1.3"):
+        cfg = compose("train", overrides=[*TRAIN_PY_TINY, f"runs_dir={tmp_path}", "model=flow_self", "data=kitti_raw",
+                                          f"data.root={kitti_raw_root.parent}", "data.height=64", "data.width=192",
+                                          "data.batch_size=2", "data.frame_skips=[1,2,3]"])
+    out = run_training(cfg)
+    assert out["global_step"] == 2 and torch.isfinite(torch.tensor(out["metrics"]["train/loss"]))
     assert (tmp_path / "flow_self_kitti_raw" / "checkpoints" / "last.ckpt").is_file()
 
 
@@ -171,7 +181,6 @@ def test_supervised_flow_on_data_without_true_flow_fails_at_setup(tmp_path: Path
     """model=flow_supervised with a dataset without true flow stops before training (no checkpoint, no step)."""
     from hydra import compose, initialize_config_dir
 
-    from dfvo.training.runner import run_training
     with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "train"), version_base="1.3"):
         cfg = compose("train", overrides=["model=flow_supervised", f"data={data}", f"runs_dir={tmp_path}", "name=x"])
     with pytest.raises(ValueError, match=rf"model=flow_supervised .*data={data}.*data=synthetic.*model=flow_self"):

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from dfvo.data.synthetic import SyntheticWorld
-from dfvo.training.flow_viz import flow_to_color
+from dfvo.synthetic import SyntheticWorld
+from dfvo.vis.colour import flow_to_color
 
 REPO = Path(__file__).resolve().parents[2]
 N = 5

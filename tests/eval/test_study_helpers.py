@@ -1,0 +1,68 @@
+"""The helpers the accuracy studies share (dfvo.eval.error_decomposition, dfvo.eval.epipolar), against hand-derived
+values and the synthetic world's exact flow and poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from dfvo.eval.epipolar import fundamental_from_pose
+from dfvo.eval.error_decomposition import compose, relative, scale_free
+from dfvo.geometry.two_view import sampson_sq
+from dfvo.synthetic import SyntheticWorld
+
+
+def _poses(n: int, seed: int = 0) -> np.ndarray:
+    """n camera poses T_w_k along a wiggly path, the first the identity."""
+    rng = np.random.default_rng(seed)
+    rel = []
+    for _ in range(n - 1):
+        a = rng.normal(scale=0.02, size=3)
+        K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        T = np.eye(4)
+        T[:3, :3] = np.eye(3) + np.sin(np.linalg.norm(a)) / np.linalg.norm(a) * K + \
+            (1 - np.cos(np.linalg.norm(a))) / np.linalg.norm(a) ** 2 * K @ K
+        T[:3, 3] = [rng.normal(scale=0.1), rng.normal(scale=0.05), 1.0 + rng.uniform()]
+        rel.append(T)
+    return compose(np.stack(rel))
+
+
+def test_relative_and_compose_invert_each_other():
+    gt = _poses(12)
+    np.testing.assert_allclose(compose(relative(gt)), gt, atol=1e-12)
+
+
+def test_scale_free_separates_the_lengths_from_the_directions():
+    gt = _poses(12)
+    rel = relative(gt)
+    factors = np.linspace(0.5, 2.0, len(rel))
+    scaled = rel.copy()
+    scaled[:, :3, 3] *= factors[:, None]  # right directions and rotations, wrong lengths
+    true_lengths, moving, direction, ratio = scale_free(gt, compose(scaled))
+    assert moving.all()
+    np.testing.assert_allclose(ratio, factors, rtol=1e-12)
+    np.testing.assert_allclose(direction, 0.0, atol=1e-5)
+    np.testing.assert_allclose(true_lengths, gt, atol=1e-9)  # lengths restored: the ground truth again
+    turned = rel.copy()
+    turned[0, :3, 3] = np.linalg.norm(rel[0, :3, 3]) * np.array([1.0, 0.0, 0.0])  # one pair sideways, same length
+    _, _, direction, ratio = scale_free(gt, compose(turned))
+    expected = np.degrees(np.arccos(rel[0, 0, 3] / np.linalg.norm(rel[0, :3, 3])))
+    assert abs(direction[0] - expected) < 1e-6 and abs(ratio[0] - 1.0) < 1e-12
+
+
+def test_true_flow_lies_on_the_epipolar_lines_of_the_true_pose():
+    world = SyntheticWorld(seed=3, num_frames=3, height=48, width=160)
+    poses = world.poses().numpy()
+    K = world.intrinsics().double().numpy()
+    flow, valid = world.flow(0, 1)
+    static = valid[0] & ~world.dynamic_mask(0)[0]
+    v, u = torch.nonzero(static, as_tuple=True)
+    x0 = torch.stack([u, v], -1).double()
+    x1 = x0 + flow[:, v, u].T.double()
+    F = torch.from_numpy(fundamental_from_pose(np.linalg.inv(poses[0]) @ poses[1], K))[None, None]
+    dist = sampson_sq(F, x0[None], x1[None])[0, 0].sqrt()
+    assert len(dist) > 1000 and float(dist.median()) < 1e-3 and float(dist.max()) < 0.05
+    sideways = np.linalg.inv(poses[0]) @ poses[1]
+    sideways[:3, 3] = np.linalg.norm(sideways[:3, 3]) * np.array([1.0, 0.0, 0.0])  # the camera moving right instead
+    wrong = torch.from_numpy(fundamental_from_pose(sideways, K))[None, None]
+    assert float(sampson_sq(wrong, x0[None], x1[None])[0, 0].sqrt().median()) > 0.2  # another pose does not fit
