@@ -44,7 +44,6 @@ sys.path.insert(0, str(REPO))
 from hydra import compose, initialize_config_dir  # noqa: E402
 
 import dfvo.inference.loop as loop  # noqa: E402
-import dfvo.inference.timing as timing  # noqa: E402
 from dfvo.inference.config import typed  # noqa: E402
 from dfvo.inference.pipeline import resolve_device, run_inference  # noqa: E402
 
@@ -143,11 +142,8 @@ def section_infer(args: argparse.Namespace, device: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for batch in args.batches:
         with tempfile.TemporaryDirectory() as tmp:
-            loop.OVERLAP, timing.CUDA_SYNC = True, False
-            runs = [_run(_infer_cfg(args, device, Path(tmp) / f"run{k}", batch)) for k in range(2)]
-            loop.OVERLAP, timing.CUDA_SYNC = False, True
-            staged = _run(_infer_cfg(args, device, Path(tmp) / "staged", batch))
-            loop.OVERLAP, timing.CUDA_SYNC = True, False
+            runs = [_run(_infer_cfg(args, device, Path(tmp) / f"run{k}", batch, "overlap=full")) for k in range(2)]
+            staged = _run(_infer_cfg(args, device, Path(tmp) / "staged", batch, "overlap=none", "cuda_sync=true"))
         s = runs[-1]
         out[f"batch_{batch}"] = {
             "frames": s["frames"], "fps": round(s["fps"], 2), "fps_first_run": round(runs[0]["fps"], 2),

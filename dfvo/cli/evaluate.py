@@ -14,13 +14,24 @@ from __future__ import annotations
 import sys
 import warnings
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Any
 
 import hydra
 from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
-TASKS = ("odometry", "flow", "depth")
+from dfvo.validation import choice, one_of
+
+
+class EvaluateTask(StrEnum):
+    """What ``dfvo-eval`` evaluates (``task``)."""
+
+    odometry = "odometry"
+    flow = "flow"
+    depth = "depth"
+
+
 SCHEMA_NAME = "evaluate_schema"
 
 
@@ -87,19 +98,13 @@ def _names(value: Any) -> list[str] | None:
     return [sequence_name(s) for s in items]
 
 
-def _choice(key: str, value: Any, choices: tuple[str, ...]) -> str:
-    if value not in choices:
-        raise ValueError(f"{key}={value}: expected one of {', '.join(choices)}")
-    return value
-
-
 def odometry_options(cfg: DictConfig) -> dict:
     """The validated keyword arguments of :func:`dfvo.eval.report.evaluate_sequences` for ``cfg``.
 
     Raises:
         ValueError: a missing or contradictory path key or an unknown choice (one line naming the key).
     """
-    from dfvo.eval.alignment import ALIGN_MODES
+    from dfvo.eval.alignment import AlignMode
     from dfvo.eval.trajectory_io import FORMATS
 
     paths = {}
@@ -115,9 +120,9 @@ def odometry_options(cfg: DictConfig) -> dict:
         raise ValueError(f"max_time_diff={cfg.max_time_diff}: expected seconds >= 0")
     return {
         **paths,
-        "align": _choice("align", cfg.align, ALIGN_MODES),
-        "format": _choice("format", cfg.format, FORMATS),
-        "gt_format": None if cfg.gt_format is None else _choice("gt_format", cfg.gt_format, FORMATS),
+        "align": choice(AlignMode, cfg.align, "align").value,
+        "format": one_of(FORMATS, cfg.format, "format"),
+        "gt_format": None if cfg.gt_format is None else one_of(FORMATS, cfg.gt_format, "gt_format"),
         "seqs": _names(cfg.seqs),
         "exclude": _names(cfg.exclude),
         "plot_dir": cfg.plot_dir,
@@ -148,7 +153,7 @@ def parse_args(argv: list[str]) -> dict:
         raise ValueError(f"{exc}{cause}".replace("\n", " ")) from exc
     finally:
         GlobalHydra.instance().clear()
-    return {"task": _choice("task", cfg.task, TASKS), "out": cfg.out, **odometry_options(cfg)}
+    return {"task": choice(EvaluateTask, cfg.task, "task").value, "out": cfg.out, **odometry_options(cfg)}
 
 
 def _dispatch(cfg: DictConfig) -> dict:
@@ -179,7 +184,7 @@ def run(cfg: DictConfig) -> dict:
     """Evaluate for a composed config: dispatch on ``cfg.task``, write ``cfg.out`` (JSON) when set."""
     from dfvo.io.json_io import write_json
 
-    _choice("task", cfg.task, TASKS)
+    choice(EvaluateTask, cfg.task, "task")
     result = _dispatch(cfg)
     if cfg.out:
         print(f"wrote {write_json(cfg.out, result)}")

@@ -355,14 +355,14 @@ def build_flow_dataset(name: str, get: Callable[[str, Any], Any], split: str, tr
     """The flow dataset ``name`` (a key of :data:`FLOW_DATASETS`) from config values.
 
     Args:
-        name: dataset name (``data.name``).
+        name: dataset kind (``data.kind``).
         get: ``get(key, default)`` reading ``data.<key>`` (root, height, width, resize, crop, and the dataset's
             own keys: dstype, cameras, reverse, scenes / val_scenes, version, mask).
         split: the dataset's split to read (``train`` / ``val`` / ``test`` / ``all``).
         train: training set (random crop when ``data.crop`` says so) or validation set (always centre crop).
     """
     if name not in FLOW_DATASETS:
-        raise ValueError(f"data.name={name!r}; expected one of {sorted(FLOW_DATASETS)}")
+        raise ValueError(f"data.kind={name!r}; expected one of {sorted(FLOW_DATASETS)}")
     root = get("root", None)
     if not root:
         raise ValueError(f"data={name}: set data.root= to the dataset folder")

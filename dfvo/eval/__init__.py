@@ -10,7 +10,7 @@ import importlib
 from typing import Any
 
 _EXPORTS = {
-    "dfvo.eval.alignment": ("ALIGN_MODES", "Association", "align_trajectory", "apply_alignment",
+    "dfvo.eval.alignment": ("ALIGN_MODES", "AlignMode", "Association", "align_trajectory", "apply_alignment",
                             "associate_trajectories", "estimate_alignment", "match_timestamps", "rebase_to_first",
                             "umeyama"),
     "dfvo.eval.depth_metrics": ("compute_depth_metrics", "depth_errors"),

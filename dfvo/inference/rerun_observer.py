@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from dfvo.geometry.camera import backproject_points
+from dfvo.inference.config import ViewerConfig
 from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
@@ -53,7 +54,7 @@ class RerunObserver:
     """
 
     def __init__(self, path: Path, K: torch.Tensor, image_hw: tuple[int, int], gt_poses: np.ndarray | None = None,
-                 spawn: bool = False) -> None:
+                 spawn: bool = ViewerConfig.spawn) -> None:
         from dfvo.viewer import RerunRecorder
 
         self.K = K.detach().cpu()

@@ -74,6 +74,7 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from kornia.filters import gaussian_blur2d
 
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, refine_pairs_pyramid, refine_pyramid
+from dfvo.validation import choice
 
 __all__ = ["RefinementMethod", "FlowRefinementConfig", "refine_flow", "refine_forward_backward",
            "refine_consecutive"]
@@ -125,11 +126,8 @@ class FlowRefinementConfig:
     pyramid: PyramidRefinementConfig = field(default_factory=PyramidRefinementConfig)
 
     def __post_init__(self) -> None:
-        try:
-            self.mode = RefinementMode(getattr(self.mode, "value", self.mode))
-        except ValueError:
-            raise ValueError(f"flow.refine.mode={self.mode!r}; expected one of "
-                             f"{[m.value for m in RefinementMode]}") from None
+        self.mode = choice(RefinementMode, self.mode, "flow.refine.mode")
+        self.method = choice(RefinementMethod, self.method, "flow.refine.method")
         if int(self.iterations) < 0:
             raise ValueError(f"flow.refine.iterations={self.iterations}; expected >= 0 (0 disables refinement)")
         if int(self.coarse_iterations) < 0:
@@ -139,11 +137,6 @@ class FlowRefinementConfig:
         if float(self.sigma) < 0 or float(self.min_eigenvalue) < 0 or float(self.max_step) <= 0:
             raise ValueError(f"flow.refine: sigma={self.sigma}, min_eigenvalue={self.min_eigenvalue}, max_step="
                              f"{self.max_step}; expected sigma >= 0, min_eigenvalue >= 0, max_step > 0")
-        try:
-            self.method = RefinementMethod(getattr(self.method, "value", self.method))
-        except ValueError:
-            raise ValueError(f"flow.refine.method={self.method!r}; expected one of "
-                             f"{[m.value for m in RefinementMethod]}") from None
 
 
 def _grey(image: torch.Tensor) -> torch.Tensor:

@@ -40,13 +40,31 @@ Convention:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-__all__ = ["PyramidRefinementConfig", "build_pyramid", "select_candidates", "lucas_kanade", "refine_pyramid",
-           "refine_pairs_pyramid"]
+from dfvo.validation import choice
+
+__all__ = ["BackwardInit", "CandidatePick", "PyramidRefinementConfig", "build_pyramid", "select_candidates",
+           "lucas_kanade", "refine_pyramid", "refine_pairs_pyramid"]
+
+
+class BackwardInit(StrEnum):
+    """Start of the backward refinement: the ``network``'s backward flow at the target, or minus the refined
+    ``forward`` flow."""
+
+    network = "network"
+    forward = "forward"
+
+
+class CandidatePick(StrEnum):
+    """Which pixel of each cell is a candidate: ``corner`` (the largest Shi–Tomasi score) or ``grid`` (the centre)."""
+
+    corner = "corner"
+    grid = "grid"
 
 
 @dataclass
@@ -83,9 +101,9 @@ class PyramidRefinementConfig:
     min_eigenvalue: float = 1e-5
     max_step: float = 2.0
     max_residual: float = 0.05
-    backward_init: str = "network"
+    backward_init: BackwardInit = BackwardInit.network
     backward_iterations: list[int] | None = None
-    candidates: str = "corner"
+    candidates: CandidatePick = CandidatePick.corner
 
     def __post_init__(self) -> None:
         its = list(self.iterations)
@@ -101,14 +119,12 @@ class PyramidRefinementConfig:
                    f"{self.cell}; expected >= 1"),
                   (len(self.grid) == 2 and min(self.grid) >= 1, f"grid={self.grid}; expected [rows, cols] >= 1"),
                   (self.sigma >= 0 and self.min_eigenvalue >= 0 and self.max_step > 0 and self.max_residual > 0,
-                   "sigma, min_eigenvalue >= 0 and max_step, max_residual > 0 expected"),
-                  (self.candidates in ("corner", "grid"), f"candidates={self.candidates!r}; expected 'corner' or "
-                   "'grid'"),
-                  (self.backward_init in ("network", "forward"),
-                   f"backward_init={self.backward_init!r}; expected 'network' or 'forward'")]
+                   "sigma, min_eigenvalue >= 0 and max_step, max_residual > 0 expected")]
         for ok, msg in checks:
             if not ok:
                 raise ValueError(f"flow.refine (pyramid): {msg}")
+        self.candidates = choice(CandidatePick, self.candidates, "flow.refine.pyramid.candidates")
+        self.backward_init = choice(BackwardInit, self.backward_init, "flow.refine.pyramid.backward_init")
         self.iterations = [int(i) for i in its]
         self.backward_iterations = [int(i) for i in b_its]
 
@@ -172,7 +188,7 @@ def select_candidates(level0: torch.Tensor, cfg: PyramidRefinementConfig) -> tup
     r = w // 2 + 1  # keep patches off the border
     score[..., :r, :], score[..., H - r:, :], score[..., :, :r], score[..., :, W - r:] = -1, -1, -1, -1
     c = int(cfg.cell)
-    if cfg.candidates == "corner":  # each cell's best pixel
+    if cfg.candidates == CandidatePick.corner:  # each cell's best pixel
         best, where = F.max_pool2d(score, c, c, ceil_mode=True, return_indices=True)  # (N,1,h,w) per cell
     else:  # each cell's centre pixel
         vv, uu = torch.meshgrid(torch.arange(c // 2, H, c, device=score.device),
@@ -331,7 +347,7 @@ def _refine(pyramid: list[torch.Tensor], src: torch.Tensor, dst: torch.Tensor, f
     u0 = torch.gather(fwd, 2, flat.unsqueeze(1).expand(-1, 2, -1)).transpose(1, 2)
     u, ok_f = lucas_kanade(pyramid, src, dst, pts, u0, mask, cfg)
     y = pts + u
-    bwd0 = -u if cfg.backward_init == "forward" else _sample_flow(flow_bwd.to(torch.float32), y)
+    bwd0 = -u if cfg.backward_init == BackwardInit.forward else _sample_flow(flow_bwd.to(torch.float32), y)
     v, ok_b = lucas_kanade(pyramid, dst, src, y, bwd0, ok_f, cfg, cfg.backward_iterations)
     ok = ok_f & ok_b
     out_f = fwd.clone()

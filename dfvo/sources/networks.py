@@ -26,6 +26,7 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
+from dfvo.sources.config import DepthSourceConfig
 
 __all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
 
@@ -154,9 +155,10 @@ class NetworkDepth:
 
     name = "network"
 
-    def __init__(self, checkpoint: str | Path, depth_scale: float = 1.0, min_depth: float = 0.1,
-                 max_depth: float = 100.0, device: str = "cpu", input_size: Any = None,
-                 flip_average: bool = False) -> None:
+    def __init__(self, checkpoint: str | Path, depth_scale: float = DepthSourceConfig.depth_scale,
+                 min_depth: float = DepthSourceConfig.min_depth, max_depth: float = DepthSourceConfig.max_depth,
+                 device: str = "cpu", input_size: Any = None,
+                 flip_average: bool = DepthSourceConfig.flip_average) -> None:
         if depth_scale <= 0:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)

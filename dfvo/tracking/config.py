@@ -1,19 +1,30 @@
 """Tracker configuration: one typed node (``tracker`` in ``infer.py``'s config) with one section per stage.
 
-This dataclass is the single home of every tracker default; the YAML files of the config groups ``tracker``,
+This dataclass holds every tracker default once; the YAML files of the config groups ``tracker``,
 ``correspondence``, ``scale`` and ``model_selection`` (``dfvo/conf/infer/``) only select a choice (e.g.
 ``method: best_n``) and the command line overrides single values (``tracker.scale.depth_views=1``). The defaults are
 what ``infer.py`` runs; where they differ from the paper / the authors' code, the field says so and
 ``experiment=paper`` restores the paper's configuration. Defaults read from the official implementation are in
 ``../shared/reference/official-defaults.md``.
+
+Three sections live beside the function they configure, in a lower layer, so that function takes its defaults from
+them (``select_correspondences`` cannot import the tracker): :class:`SelectionConfig` in
+:mod:`dfvo.matching.selection`, :class:`EssentialConfig` in :mod:`dfvo.geometry.two_view`, :class:`PnPConfig` in
+:mod:`dfvo.geometry.pnp`; they are re-exported here. ``tests/test_config_defaults.py`` checks that every public
+function whose parameters mirror a config field has the field's default (or none).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum, StrEnum
+from enum import StrEnum
 
-__all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "SelectionConfig",
+from dfvo.geometry.pnp import PnPConfig
+from dfvo.geometry.two_view import EssentialConfig
+from dfvo.matching.selection import SelectionConfig, SelectionMethod
+from dfvo.validation import check, choice
+
+__all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "RoadPoints", "SelectionConfig",
            "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "ScaleFilterConfig",
            "GateConfig", "PnPConfig", "TrackerConfig"]
 
@@ -27,14 +38,6 @@ class TrackerMode(StrEnum):
     pnp = "pnp"
 
 
-class SelectionMethod(StrEnum):
-    """Correspondence selection (:mod:`dfvo.matching.selection`)."""
-
-    local_best_k = "local_best_k"
-    best_n = "best_n"
-    uniform = "uniform"
-
-
 class ModelSelectionMethod(StrEnum):
     """E-vs-PnP decision: ``gric`` (E vs H) or ``flow`` (median flow magnitude)."""
 
@@ -42,81 +45,18 @@ class ModelSelectionMethod(StrEnum):
     flow = "flow"
 
 
+class RoadPoints(StrEnum):
+    """The points the road plane is fitted to (``tracker.road_plane.points``; see :class:`RoadPlaneConfig`)."""
+
+    triangulated = "triangulated"
+    depth = "depth"
+
+
 class ScaleMethod(StrEnum):
     """Scale recovery: ``simple`` (1-D RANSAC on depth ratios) or ``iterative`` (paper Algorithm 2)."""
 
     simple = "simple"
     iterative = "iterative"
-
-
-def _check(condition: bool, message: str) -> None:
-    if not condition:
-        raise ValueError(message)
-
-
-def _choice(enum: type[Enum], value: object, setting: str) -> Enum:
-    """``value`` as a member of ``enum``; a ValueError naming ``setting`` and the allowed values otherwise."""
-    try:
-        return enum(value.value if isinstance(value, Enum) else value)
-    except ValueError:
-        raise ValueError(f"{setting}={value!r}; expected one of {[m.value for m in enum]}") from None
-
-
-@dataclass
-class SelectionConfig:
-    """Forward-backward consistency and correspondence selection (``tracker.correspondence``).
-
-    Attributes:
-        method: see :class:`SelectionMethod`.
-        num_correspondences: correspondences kept per frame pair.
-        grid: regions (rows, cols) of ``local_best_k``.
-        max_inconsistency: forward-backward inconsistency (pixels) a correspondence may have.
-        min_valid_fraction: selection fails (constant motion) below this fraction of consistent pixels.
-        min_region_fraction: ``local_best_k`` regions with fewer consistent pixels are skipped.
-        crop_top: fraction of image rows at the top not used.
-    """
-
-    method: SelectionMethod = SelectionMethod.local_best_k
-    num_correspondences: int = 2000
-    grid: list[int] = field(default_factory=lambda: [10, 10])
-    max_inconsistency: float = 0.1
-    min_valid_fraction: float = 0.1
-    min_region_fraction: float = 0.1
-    crop_top: float = 0.0
-
-    def __post_init__(self) -> None:
-        self.method = _choice(SelectionMethod, self.method, "tracker.correspondence.method")
-        _check(len(self.grid) == 2 and all(int(g) > 0 for g in self.grid),
-               f"tracker.correspondence.grid={list(self.grid)}; expected [rows, cols] of positive integers")
-        self.grid = [int(g) for g in self.grid]
-        _check(int(self.num_correspondences) > 0, f"tracker.correspondence.num_correspondences="
-                                                 f"{self.num_correspondences}; expected a positive integer")
-        _check(self.max_inconsistency > 0, f"tracker.correspondence.max_inconsistency={self.max_inconsistency}; "
-                                           "expected > 0")
-        _check(0.0 <= self.crop_top < 1.0, f"tracker.correspondence.crop_top={self.crop_top}; expected [0, 1)")
-
-
-@dataclass
-class EssentialConfig:
-    """Essential-matrix RANSAC and its validity rules (``tracker.essential``).
-
-    Attributes:
-        threshold_px: RANSAC inlier threshold in pixels (converted to normalised coordinates).
-        iterations: minimal samples per RANSAC repeat; repeats: repeats, the most inliers wins.
-        min_correspondences: with this many or fewer valid correspondences E is invalid.
-        min_cheirality_fraction: E is invalid when fewer rows pass cheirality.
-    """
-
-    threshold_px: float = 0.2
-    iterations: int = 20
-    repeats: int = 5
-    min_correspondences: int = 10
-    min_cheirality_fraction: float = 0.1
-
-    def __post_init__(self) -> None:
-        _check(self.threshold_px > 0, f"tracker.essential.threshold_px={self.threshold_px}; expected > 0")
-        _check(int(self.iterations) > 0 and int(self.repeats) > 0,
-               f"tracker.essential: iterations={self.iterations}, repeats={self.repeats}; expected positive integers")
 
 
 @dataclass
@@ -137,8 +77,8 @@ class ModelSelectionConfig:
     flow_magnitude_threshold: float = 5.0
 
     def __post_init__(self) -> None:
-        self.method = _choice(ModelSelectionMethod, self.method, "tracker.model_selection.method")
-        _check(self.h_threshold_px > 0 and self.gric_sigma > 0 and int(self.h_iterations) > 0,
+        self.method = choice(ModelSelectionMethod, self.method, "tracker.model_selection.method")
+        check(self.h_threshold_px > 0 and self.gric_sigma > 0 and int(self.h_iterations) > 0,
                f"tracker.model_selection: h_threshold_px={self.h_threshold_px}, gric_sigma={self.gric_sigma}, "
                f"h_iterations={self.h_iterations}; expected positive values")
 
@@ -191,17 +131,17 @@ class ScaleConfig:
     temporal: bool = True
 
     def __post_init__(self) -> None:
-        self.method = _choice(ScaleMethod, self.method, "tracker.scale.method")
-        _check(self.camera_height is None or self.camera_height > 0,
+        self.method = choice(ScaleMethod, self.method, "tracker.scale.method")
+        check(self.camera_height is None or self.camera_height > 0,
                f"tracker.scale.camera_height={self.camera_height}; expected a height in metres > 0, or null (off)")
-        _check(self.depth_views in (1, 2), f"tracker.scale.depth_views={self.depth_views}; expected 1 or 2")
-        _check(self.views_max_ratio > 1.0, f"tracker.scale.views_max_ratio={self.views_max_ratio}; expected > 1")
-        _check(self.max_depth > 0 and self.inlier_threshold > 0,
+        check(self.depth_views in (1, 2), f"tracker.scale.depth_views={self.depth_views}; expected 1 or 2")
+        check(self.views_max_ratio > 1.0, f"tracker.scale.views_max_ratio={self.views_max_ratio}; expected > 1")
+        check(self.max_depth > 0 and self.inlier_threshold > 0,
                f"tracker.scale: max_depth={self.max_depth}, inlier_threshold={self.inlier_threshold}; expected > 0")
-        _check(0.0 <= self.depth_crop_top < 1.0, f"tracker.scale.depth_crop_top={self.depth_crop_top}; "
+        check(0.0 <= self.depth_crop_top < 1.0, f"tracker.scale.depth_crop_top={self.depth_crop_top}; "
                                                  "expected [0, 1)")
         for name in ("ransac_trials", "ransac_samples", "iterative_max_iters"):
-            _check(int(getattr(self, name)) > 0, f"tracker.scale.{name}={getattr(self, name)}; expected a positive "
+            check(int(getattr(self, name)) > 0, f"tracker.scale.{name}={getattr(self, name)}; expected a positive "
                                                  "integer")
 
 
@@ -233,7 +173,7 @@ class RoadPlaneConfig:
             06), 0.015 (synthetic highway), 0.13 (synthetic drive); ``triangulated`` 0.30 (KITTI 06).
     """
 
-    points: str = "depth"
+    points: RoadPoints = RoadPoints.depth
     min_row_fraction: float = 0.7
     max_row_fraction: float = 0.87
     max_col_offset_fraction: float = 0.2
@@ -247,16 +187,15 @@ class RoadPlaneConfig:
     log_std: float = 0.05
 
     def __post_init__(self) -> None:
-        _check(self.points in ("triangulated", "depth"), f"tracker.road_plane.points={self.points!r}; expected "
-                                                         "'triangulated' or 'depth'")
-        _check(self.min_row_fraction < self.max_row_fraction <= 1.0 and int(self.grid_step) > 0,
+        self.points = choice(RoadPoints, self.points, "tracker.road_plane.points")
+        check(self.min_row_fraction < self.max_row_fraction <= 1.0 and int(self.grid_step) > 0,
                f"tracker.road_plane: max_row_fraction={self.max_row_fraction}, grid_step={self.grid_step}; expected "
                "min_row_fraction < max_row_fraction <= 1 and a positive step")
-        _check(0.0 <= self.min_row_fraction < 1.0 and 0.0 < self.max_col_offset_fraction <= 0.5,
+        check(0.0 <= self.min_row_fraction < 1.0 and 0.0 < self.max_col_offset_fraction <= 0.5,
                f"tracker.road_plane: min_row_fraction={self.min_row_fraction} (expected [0, 1)), "
                f"max_col_offset_fraction={self.max_col_offset_fraction} (expected (0, 0.5])")
-        _check(0.0 < self.quantile <= 1.0, f"tracker.road_plane.quantile={self.quantile}; expected (0, 1]")
-        _check(self.threshold > 0 and 0 < self.max_tilt_deg < 90 and self.log_std > 0 and int(self.trials) > 0,
+        check(0.0 < self.quantile <= 1.0, f"tracker.road_plane.quantile={self.quantile}; expected (0, 1]")
+        check(self.threshold > 0 and 0 < self.max_tilt_deg < 90 and self.log_std > 0 and int(self.trials) > 0,
                f"tracker.road_plane: threshold={self.threshold}, max_tilt_deg={self.max_tilt_deg}, "
                f"log_std={self.log_std}, trials={self.trials}; expected positive values (tilt < 90)")
 
@@ -301,9 +240,9 @@ class ScaleFilterConfig:
 
     def __post_init__(self) -> None:
         for name in ("cnn_log_std", "motion_log_std", "temporal_log_std", "gate_sigma", "max_inconsistency"):
-            _check(getattr(self, name) > 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected > 0")
+            check(getattr(self, name) > 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected > 0")
         for name in ("relative_process_std", "bias_prior_log_std", "bias_log_std", "min_parallax_deg"):
-            _check(getattr(self, name) >= 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected >= 0")
+            check(getattr(self, name) >= 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected >= 0")
 
 
 @dataclass
@@ -343,32 +282,12 @@ class GateConfig:
     max_consecutive: int = 10
 
     def __post_init__(self) -> None:
-        _check(self.max_length_ratio > 1.0, f"tracker.gate.max_length_ratio={self.max_length_ratio}; expected > 1")
-        _check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
+        check(self.max_length_ratio > 1.0, f"tracker.gate.max_length_ratio={self.max_length_ratio}; expected > 1")
+        check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
                f"tracker.gate: length_window={self.length_window} (expected >= 1), max_consecutive="
                f"{self.max_consecutive} (expected >= 0)")
-        _check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
+        check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
                                                       f"{self.min_inlier_fraction}; expected [0, 1)")
-
-
-@dataclass
-class PnPConfig:
-    """PnP-RANSAC with Levenberg-Marquardt refinement (``tracker.pnp``).
-
-    Attributes:
-        threshold_px: inlier reprojection threshold (pixels). iterations: minimal samples per repeat.
-        repeats: RANSAC repeats. min_points: PnP fails with fewer usable 3-D/2-D rows.
-    """
-
-    threshold_px: float = 1.0
-    iterations: int = 100
-    repeats: int = 5
-    min_points: int = 10
-
-    def __post_init__(self) -> None:
-        _check(self.threshold_px > 0 and int(self.iterations) > 0 and int(self.repeats) > 0,
-               f"tracker.pnp: threshold_px={self.threshold_px}, iterations={self.iterations}, repeats={self.repeats}; "
-               "expected positive values")
 
 
 @dataclass
@@ -394,4 +313,4 @@ class TrackerConfig:
     pnp: PnPConfig = field(default_factory=PnPConfig)
 
     def __post_init__(self) -> None:
-        self.mode = _choice(TrackerMode, self.mode, "tracker.mode")
+        self.mode = choice(TrackerMode, self.mode, "tracker.mode")
