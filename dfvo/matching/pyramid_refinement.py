@@ -46,6 +46,8 @@ import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
+from dfvo.matching.image_ops import box_mean, gradient, smooth
+from dfvo.matching.image_ops import grey as to_grey
 from dfvo.validation import choice
 
 __all__ = ["BackwardInit", "CandidatePick", "PyramidRefinementConfig", "build_pyramid", "select_candidates",
@@ -130,47 +132,18 @@ class PyramidRefinementConfig:
 
 
 # ---------------------------------------------------------------------------------------------------- images
-def _grey(images: torch.Tensor, sigma: float) -> torch.Tensor:
-    x = images.to(torch.float32)
-    if x.shape[1] == 3:
-        x = 0.299 * x[:, :1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:]
-    if sigma > 0:
-        r = max(1, int(round(3 * sigma)))
-        k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32, device=x.device) / sigma) ** 2)
-        k = k / k.sum()
-        x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-        x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
-    return x
-
-
-def _gradient(x: torch.Tensor) -> torch.Tensor:
-    """Central differences (d/du, d/dv) of (N,1,H,W), replicated borders -> (N,2,H,W)."""
-    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    return torch.cat([0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]), 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])], 1)
-
-
-def _box(x: torch.Tensor, window: int) -> torch.Tensor:
-    """Mean over ``window`` x ``window`` neighbourhoods (replicated border) by running sums along each axis."""
-    r = window // 2
-    x = F.pad(x, (r + 1, r, r + 1, r), mode="replicate")
-    c = x.cumsum(-1)
-    x = c[..., window:] - c[..., :-window]
-    c = x.cumsum(-2)
-    return (c[..., window:, :] - c[..., :-window, :]) / (window * window)
-
-
 def build_pyramid(images: torch.Tensor, levels: int, sigma: float = 1.0) -> list[torch.Tensor]:
     """Grey image and gradients of each level, finest first: ``levels`` tensors (N,3,H_l,W_l) (grey, d/du, d/dv);
     level l+1 is the 2x2 block mean of level l (see the module docstring for the coordinates)."""
     KORNIA_CHECK_SHAPE(images, ["N", "C", "H", "W"])
-    g = _grey(images, sigma)
+    g = smooth(to_grey(images), sigma)
     out = []
     for lev in range(levels):
         if lev > 0:
             KORNIA_CHECK(min(g.shape[-2:]) >= 4, f"build_pyramid: level {lev} of a {tuple(images.shape[-2:])} image "
                                                  "is smaller than 4 pixels; use fewer levels")
             g = F.avg_pool2d(g, 2, ceil_mode=True)
-        out.append(torch.cat([g, _gradient(g)], 1))
+        out.append(torch.cat([g, gradient(g)], 1))
     return out
 
 
@@ -183,7 +156,7 @@ def select_candidates(level0: torch.Tensor, cfg: PyramidRefinementConfig) -> tup
     N, _, H, W = level0.shape
     gx, gy = level0[:, 1:2], level0[:, 2:3]
     w = int(cfg.window)
-    sxx, sxy, syy = _box(torch.cat([gx * gx, gx * gy, gy * gy], 1), w).split(1, 1)
+    sxx, sxy, syy = box_mean(torch.cat([gx * gx, gx * gy, gy * gy], 1), w).split(1, 1)
     score = 0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy * sxy)  # (N,1,H,W)
     r = w // 2 + 1  # keep patches off the border
     score[..., :r, :], score[..., H - r:, :], score[..., :, :r], score[..., :, W - r:] = -1, -1, -1, -1

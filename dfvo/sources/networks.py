@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
+from dfvo.geometry.camera import resize_flow
 from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
@@ -53,16 +54,6 @@ def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     if tuple(images.shape[-2:]) == size:
         return images
     return F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
-
-
-def _resize_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """Flow (B,2,h,w) in pixels of its own size → (B,2,H,W) in pixels of ``size``."""
-    h, w = flow.shape[-2:]
-    if (h, w) == tuple(size):
-        return flow
-    out = F.interpolate(flow, size=size, mode="bilinear", align_corners=False)
-    scale = torch.tensor([size[1] / w, size[0] / h], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
-    return out * scale
 
 
 class NetworkFlow:
@@ -114,7 +105,7 @@ class NetworkFlow:
         size = tuple(images_prev.shape[-2:])
         with torch.no_grad():
             fwd, bwd = self.model.forward_backward(*self.network_inputs(images_prev, images_cur))
-            return _resize_flow(fwd, size), _resize_flow(bwd, size)
+            return resize_flow(fwd, size), resize_flow(bwd, size)
 
 
 def blend_flipped_inverse_depth(inv_depth: torch.Tensor, inv_depth_of_mirror: torch.Tensor,
