@@ -14,13 +14,13 @@ default) decodes and resizes the frames of batch k+1 in a loader thread while th
 not thread-safe: it renders in the main thread). ``"full"`` also moves the refinement and the tracker to a tracker
 thread, which works on batch k-1 while the main thread runs the flow and depth networks of batch k; on a CPU the two
 busy threads then get half of the torch threads each (restored after the loop), so their OpenMP teams do not compete
-for the same cores. ``"none"`` is the serial loop: on a CPU shared with other processes it was 3-10x slower than
+for the same cores. ``"none"`` is the serial loop: on a CPU shared with other processes it is much slower than
 ``"load"`` (GNU OpenMP's workers busy-wait long after each parallel region unless the process has more OpenMP
-threads than CPUs, as the loader thread makes it; ``docs/speed.md``). The tracker's state is sequential, so batches
-reach it one at a time and in order; each frame draws its random samples from its own seeded generator, so the poses
-are the same, bit for bit, in every mode and for any batch size. Stage times of different threads overlap (``load``,
-``refine`` and ``tracker`` are measured in the thread that runs them; ``wait_load`` and ``wait_tracker`` are what
-the main thread spent blocked on them).
+threads than CPUs, as the loader thread makes it; measured in docs/speed.md, "Overlap"). The tracker's state is
+sequential, so batches reach it one at a time and in order; each frame draws its random samples from its own seeded
+generator, so the poses are the same, bit for bit, in every mode and for any batch size. Stage times of different
+threads overlap (``load``, ``refine`` and ``tracker`` are measured in the thread that runs them; ``wait_load`` and
+``wait_tracker`` are what the main thread spent blocked on them).
 """
 
 from __future__ import annotations

@@ -38,16 +38,13 @@ Methods (``flow.refine.method``), both dense (every pixel of both flows):
       iteration. ``method=symmetric iterations=5 coarse_iterations=0`` is the refinement this project used before
       (5 iterations at the working resolution).
 
-Measured on KITTI 06 (50 pairs, 640x192, the shipped flow network; ``benchmarks/refine_schedules.py``,
-``docs/speed.md``): the default (inverse compositional, 3 coarse + 2 full iterations) selects more accurate
-correspondences than the former ``symmetric`` x5 (epipolar error under the true pose, median 0.134 vs 0.142 px) at
-a third of its CPU time (65-78 vs 241 ms per pair, 1 thread).
-Refining only the candidates the selection could pick (an 11x11 window per candidate, gathered and summed) was
-measured too (``docs/speed.md``, 1 thread, CPU time): one iteration over 2000 / 5000 / 10000 windows costs 6.3 / 15.0
-/ 29.4 ms against 15.9 ms for a dense iteration over both flows of a 640x192 pair. The selection ranks every pixel
-by its forward-backward inconsistency, so it needs the forward flow at each candidate and the backward flow at the 4
-pixels around each candidate's target: well over 5000 windows per pair, i.e. no saving over the dense schedule, and
-a different test (the ranking would see only the candidates).
+The default (inverse compositional, 3 coarse + 2 full iterations) was chosen by measurement against the former
+``symmetric`` x5: more accurate correspondences at a fraction of its CPU time (docs/speed.md, "Flow refinement",
+``benchmarks/refine_schedules.py``). Refining only the candidates the selection could pick (an 11x11 window per
+candidate, gathered and summed) does not pay: the selection ranks every pixel by its forward-backward
+inconsistency, so it needs the forward flow at each candidate and the backward flow at the 4 pixels around each
+candidate's target, well over 5000 windows per pair, which cost more than a dense iteration over both flows (the
+dense box sums are O(1) per pixel; measured in docs/speed.md), and the ranking would see only the candidates.
 
 Modes (``flow.refine.mode``): ``dense`` is the above; ``pyramid`` replaces it by the coarse-to-fine sparse
 refinement at the candidates the selection can use (:mod:`dfvo.matching.pyramid_refinement`: errors of several

@@ -102,16 +102,13 @@ class ScaleConfig:
             (:mod:`dfvo.tracking.ground_plane`, settings in ``tracker.road_plane``) then gives a second scale
             observation, fused with the CNN's by their variances (:mod:`dfvo.tracking.scale_fusion`). null: off (the
             paper). ``infer.py`` fills it from ``data.camera_height`` when null (KITTI's dataset configs set 1.65;
-            ``data.camera_height=null`` turns it off there): KITTI 06 RPE 0.071 -> 0.038 m with ``temporal``
-            (docs/scale.md).
+            ``data.camera_height=null`` turns it off there). Its effect is measured in docs/scale.md.
         camera_height_from_data: false: ``data.camera_height`` is not used (``experiment=paper`` sets it; an explicit
             ``camera_height`` still is).
         temporal: fuse the scale over time (:mod:`dfvo.tracking.scale_filter`, settings in ``tracker.scale_filter``):
             the three-frame relative scale predicts each pair's length from the previous one, the absolute
             observations correct it; a frame whose scale observations fail keeps the prediction. false: per-frame
-            scale (the paper). Default true: RPE KITTI 06 0.086 -> 0.071 m (0.038 m with the camera height),
-            held-out synthetic straight 0.138 -> 0.080 m, synthetic drive 0.197 -> 0.190 m
-            (``benchmarks/scale_study.py``, docs/scale.md).
+            scale (the paper). Default true; its effect is measured in docs/scale.md.
     """
 
     method: ScaleMethod = ScaleMethod.simple
@@ -155,10 +152,8 @@ class RoadPlaneConfig:
             ``camera_height / fitted height`` observes the translation's length (needs good flow on the road).
             ``depth`` (default): the plane of the depth network's own points of the earlier frame (a pixel grid
             every ``grid_step`` px in the band); ``fitted height / camera_height`` observes the network's scale factor
-            near the road, which the filter divides out of the CNN-depth scale. Measured with the shipped networks
-            (``benchmarks/scale_study.py``): the shipped flow is too poor on the road for ``triangulated`` (per-frame
-            log std 0.29 on KITTI 06, a plane on 37 of 50 frames; RPE 0.050 m with the temporal filter vs 0.038 m with
-            ``depth``).
+            near the road, which the filter divides out of the CNN-depth scale. ``depth`` is the default because the
+            shipped flow is too poor on the road for ``triangulated`` (measurements: docs/scale.md).
         min_row_fraction, max_row_fraction: candidate points lie in this band of image rows (fractions of the height;
             the lower image, above the bottom rows whose points leave the next image).
         max_col_offset_fraction: ... and within this fraction of the image width of its centre column.
@@ -169,8 +164,8 @@ class RoadPlaneConfig:
         max_tilt_deg: largest angle between the plane's normal and the camera's vertical (y) axis.
         min_parallax_deg: points whose two rays meet at a smaller angle are not used (poor triangulation).
         min_inliers: fewer inliers: no camera-height observation this frame.
-        trials: RANSAC hypotheses. log_std: per-frame std of the observation's log; measured: ``depth`` 0.046 (KITTI
-            06), 0.015 (synthetic highway), 0.13 (synthetic drive); ``triangulated`` 0.30 (KITTI 06).
+        trials: RANSAC hypotheses. log_std: per-frame std of the observation's log, the weight the filter gives it
+            (the values measured per dataset: docs/scale.md).
     """
 
     points: RoadPoints = RoadPoints.depth
@@ -205,11 +200,9 @@ class ScaleFilterConfig:
     """Scale fusion and the temporal filter over log scale (``tracker.scale_filter``).
 
     Attributes:
-        cnn_log_std: per-frame std of log(CNN-depth scale / true length). Measured with the shipped networks
-            (``benchmarks/scale_study.py``): 0.067 on KITTI 06, 0.15 on a held-out synthetic straight road (seed
-            1000), 0.11 on the synthetic drive's E frames; its errors are correlated from frame to frame, so 0.1
-            (not the KITTI value 0.07) lets the three-frame relative scale carry more: RPE KITTI 06 0.040 -> 0.038
-            m, synthetic straight 0.097 -> 0.080 m, synthetic drive unchanged (0.195 m).
+        cnn_log_std: per-frame std of log(CNN-depth scale / true length), the weight the filter gives the CNN-depth
+            scale. Its errors are correlated from frame to frame, so the default is larger than the per-frame std
+            measured on KITTI and lets the three-frame relative scale carry more (measurements: docs/scale.md).
         motion_log_std: per-frame random walk of log scale when no relative scale is observed.
         temporal_log_std: floor of the three-frame relative scale's standard error; relative_process_std: added
             per frame to it (speed changes the points cannot see).
@@ -256,18 +249,15 @@ class GateConfig:
             standstill). stop_length, stop_flow_px: a translation this short is a stop, never "too short", when the
             image agrees (90 % of the selected correspondences move at most ``stop_flow_px`` pixels beyond the
             camera's rotation: no parallax).
-        length_window: the expected length is the median of this many last tracked lengths (not constant motion).
-            Measured: 3 instead of 1 keeps one wrong PnP length from becoming the reference (the truck of the
-            synthetic drive at 96x320: constant motion 0.14-0.30 m wrong instead of 0.79-0.95 m; 100-frame drive
-            RPE 0.195 -> 0.190 m; KITTI 06 unchanged).
+        length_window: the expected length is the median of this many last tracked lengths (not constant motion);
+            more than one keeps a single wrong PnP length from becoming the reference (docs/scale.md).
         max_direction_change_deg: a translation whose direction differs more from the previous frame's (both longer
             than ``stop_length``) is rejected.
         min_inliers, min_inlier_fraction: a model with fewer inliers than ``max(min_inliers,
             min_inlier_fraction * rows)`` is rejected.
         max_consecutive: after this many frames in a row that a gate sent to constant motion the next result is
-            accepted (a wrong expectation cannot hold forever). Measured: 3 lets a truck that fills the view for 12
-            frames of the synthetic drive (seed 0, frames 81-92) take over after 3 frames (8 frames > 1 m wrong);
-            10 (1 s at 10 Hz) keeps constant motion through it (none).
+            accepted (a wrong expectation cannot hold forever); the default, 1 s at 10 Hz, rides out a truck that
+            fills the view for longer than a few frames (docs/scale.md).
     """
 
     enabled: bool = True
