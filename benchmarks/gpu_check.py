@@ -41,7 +41,6 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import dfvo.inference.loop as loop
-import dfvo.inference.timing as timing
 from dfvo.inference.config import typed
 from dfvo.inference.pipeline import resolve_device, run_inference
 
@@ -141,11 +140,8 @@ def section_infer(args: argparse.Namespace, device: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for batch in args.batches:
         with tempfile.TemporaryDirectory() as tmp:
-            loop.OVERLAP, timing.CUDA_SYNC = True, False
-            runs = [_run(_infer_cfg(args, device, Path(tmp) / f"run{k}", batch)) for k in range(2)]
-            loop.OVERLAP, timing.CUDA_SYNC = False, True
-            staged = _run(_infer_cfg(args, device, Path(tmp) / "staged", batch))
-            loop.OVERLAP, timing.CUDA_SYNC = True, False
+            runs = [_run(_infer_cfg(args, device, Path(tmp) / f"run{k}", batch, "overlap=full")) for k in range(2)]
+            staged = _run(_infer_cfg(args, device, Path(tmp) / "staged", batch, "overlap=none", "cuda_sync=true"))
         s = runs[-1]
         out[f"batch_{batch}"] = {
             "frames": s["frames"], "fps": round(s["fps"], 2), "fps_first_run": round(runs[0]["fps"], 2),

@@ -42,8 +42,8 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 
-import dfvo.inference.loop as loop
 import dfvo.inference.pipeline as pipeline
+from dfvo.inference.config import InferConfig, OverlapMode
 from dfvo.inference.pipeline import run_inference
 from dfvo.inference.timing import StageTimer
 
@@ -80,14 +80,13 @@ def main() -> None:
     p.add_argument("--seq", default=None)
     p.add_argument("--overrides", nargs="*", default=[], help="extra infer.yaml overrides (tracker=pnp ...)")
     p.add_argument("--repeat", type=int, default=1, help="runs; the fastest is reported (each in fps_runs)")
-    p.add_argument("--overlap", choices=list(loop.OVERLAP_MODES), default=None,
-                   help=f"loop threads (dfvo.inference.loop); default {loop.OVERLAP!r}")
+    p.add_argument("--overlap", choices=[m.value for m in OverlapMode], default=None,
+                   help=f"loop threads (infer.py overlap=); default {InferConfig.overlap.value!r}")
     p.add_argument("--no-overlap", action="store_true", help="the serial loop: --overlap none")
     p.add_argument("--device", default="cpu", help="cpu | cuda | auto")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
-    args.overlap = "none" if args.no_overlap else (args.overlap or loop.OVERLAP)
-    loop.OVERLAP = args.overlap
+    args.overlap = "none" if args.no_overlap else (args.overlap or InferConfig.overlap.value)
     load_before = os.getloadavg()[0]
     runs = [_run_once(args) for _ in range(max(1, args.repeat))]
     summary, cfg = max(runs, key=lambda r: r[0]["fps"])
@@ -117,7 +116,7 @@ def _run_once(args: argparse.Namespace) -> tuple[dict, object]:
         tmp = Path(tmp)
         ov = [f"data={args.data}", f"img_res.height={args.height}", f"img_res.width={args.width}",
               f"out_dir={tmp / 'out'}", "progress=false", f"batch_size={args.batch_size}",
-              f"num_threads={args.threads}", f"device={args.device}"]
+              f"num_threads={args.threads}", f"device={args.device}", f"overlap={args.overlap}"]
         if args.data == "synthetic":
             ov.append(f"data.num_frames={args.frames}")
         else:

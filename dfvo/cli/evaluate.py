@@ -15,6 +15,7 @@ import os
 import sys
 import warnings
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import hydra
@@ -24,15 +25,24 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from dfvo.cli.errors import one_line
-from dfvo.eval.alignment import ALIGN_MODES
+from dfvo.eval.alignment import AlignMode
 from dfvo.eval.report import evaluate_sequences, format_table, sequence_name
 from dfvo.io.json_io import write_json
 from dfvo.io.trajectory import FORMATS
 from dfvo.source_eval.config import DepthEvalConfig, FlowEvalConfig
 from dfvo.source_eval.depth import evaluate_depth_task, format_depth_table
 from dfvo.source_eval.flow import evaluate_flow_task, format_flow_table
+from dfvo.validation import choice, one_of
 
-TASKS = ("odometry", "flow", "depth")
+
+class EvaluateTask(StrEnum):
+    """What ``dfvo-eval`` evaluates (``task``)."""
+
+    odometry = "odometry"
+    flow = "flow"
+    depth = "depth"
+
+
 SCHEMA_NAME = "evaluate_schema"
 
 
@@ -98,12 +108,6 @@ def _names(value: Any) -> list[str] | None:
     return [sequence_name(s) for s in items]
 
 
-def _choice(key: str, value: Any, choices: tuple[str, ...]) -> str:
-    if value not in choices:
-        raise ValueError(f"{key}={value}: expected one of {', '.join(choices)}")
-    return value
-
-
 def odometry_options(cfg: DictConfig) -> dict:
     """The validated keyword arguments of :func:`dfvo.eval.report.evaluate_sequences` for ``cfg``.
 
@@ -123,9 +127,9 @@ def odometry_options(cfg: DictConfig) -> dict:
         raise ValueError(f"max_time_diff={cfg.max_time_diff}: expected seconds >= 0")
     return {
         **paths,
-        "align": _choice("align", cfg.align, ALIGN_MODES),
-        "format": _choice("format", cfg.format, FORMATS),
-        "gt_format": None if cfg.gt_format is None else _choice("gt_format", cfg.gt_format, FORMATS),
+        "align": choice(AlignMode, cfg.align, "align").value,
+        "format": one_of(FORMATS, cfg.format, "format"),
+        "gt_format": None if cfg.gt_format is None else one_of(FORMATS, cfg.gt_format, "gt_format"),
         "seqs": _names(cfg.seqs),
         "exclude": _names(cfg.exclude),
         "plot_dir": cfg.plot_dir,
@@ -155,7 +159,7 @@ def parse_args(argv: list[str]) -> dict:
         raise ValueError(f"{exc}{cause}".replace("\n", " ")) from exc
     finally:
         GlobalHydra.instance().clear()
-    return {"task": _choice("task", cfg.task, TASKS), "out": cfg.out, **odometry_options(cfg)}
+    return {"task": choice(EvaluateTask, cfg.task, "task").value, "out": cfg.out, **odometry_options(cfg)}
 
 
 def _dispatch(cfg: DictConfig) -> dict:
@@ -178,7 +182,7 @@ def _dispatch(cfg: DictConfig) -> dict:
 
 def run(cfg: DictConfig) -> dict:
     """Evaluate for a composed config: dispatch on ``cfg.task``, write ``cfg.out`` (JSON) when set."""
-    _choice("task", cfg.task, TASKS)
+    choice(EvaluateTask, cfg.task, "task")
     result = _dispatch(cfg)
     if cfg.out:
         print(f"wrote {write_json(cfg.out, result)}")

@@ -33,12 +33,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch.utils.data import Dataset
 
 from dfvo.data.flow_io import read_flow
 from dfvo.data.image_io import DatasetError, read_image, require_dir
 from dfvo.data.transforms import resize_image
+from dfvo.geometry.camera import resize_flow as resize_dense_flow
 
 __all__ = ["FlowPair", "FlowPairDataset", "FlyingChairs", "FlyingThings3D", "Sintel", "KittiFlow", "resize_flow",
            "FLOW_DATASETS", "build_flow_dataset"]
@@ -61,18 +61,17 @@ class FlowPair:
 def resize_flow(flow: torch.Tensor, valid: torch.Tensor, size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Resize a flow (2,H,W) with validity (1,H,W) to ``size`` = (h, w), vectors scaled by ``w/W``, ``h/H``.
 
-    Fully valid flows are resized bilinearly (``align_corners=False``); sparse ones pixel by pixel: each valid
-    pixel goes to the nearest target pixel (``x' = (x + 0.5) w/W - 0.5``), the flows landing on one target are
-    averaged, and only targets that received one are valid.
+    Fully valid flows are resized by :func:`dfvo.geometry.camera.resize_flow` (bilinear); sparse ones pixel by
+    pixel: each valid pixel goes to the nearest target pixel (``x' = (x + 0.5) w/W - 0.5``), the flows landing on
+    one target are averaged, and only targets that received one are valid.
     """
     H, W = flow.shape[-2:]
     h, w = int(size[0]), int(size[1])
     if (h, w) == (H, W):
         return flow, valid
-    scale = torch.tensor([w / W, h / H], dtype=flow.dtype).view(2, 1, 1)
     if bool(valid.all()):
-        out = F.interpolate(flow[None], size=(h, w), mode="bilinear", align_corners=False)[0]
-        return out * scale, torch.ones(1, h, w, dtype=torch.bool)
+        return resize_dense_flow(flow[None], (h, w))[0], torch.ones(1, h, w, dtype=torch.bool)
+    scale = torch.tensor([w / W, h / H], dtype=flow.dtype).view(2, 1, 1)
     ys, xs = torch.nonzero(valid[0], as_tuple=True)
     xt = torch.round((xs.double() + 0.5) * w / W - 0.5).long()
     yt = torch.round((ys.double() + 0.5) * h / H - 0.5).long()
@@ -355,14 +354,14 @@ def build_flow_dataset(name: str, get: Callable[[str, Any], Any], split: str, tr
     """The flow dataset ``name`` (a key of :data:`FLOW_DATASETS`) from config values.
 
     Args:
-        name: dataset name (``data.name``).
+        name: dataset kind (``data.kind``).
         get: ``get(key, default)`` reading ``data.<key>`` (root, height, width, resize, crop, and the dataset's
             own keys: dstype, cameras, reverse, scenes / val_scenes, version, mask).
         split: the dataset's split to read (``train`` / ``val`` / ``test`` / ``all``).
         train: training set (random crop when ``data.crop`` says so) or validation set (always centre crop).
     """
     if name not in FLOW_DATASETS:
-        raise ValueError(f"data.name={name!r}; expected one of {sorted(FLOW_DATASETS)}")
+        raise ValueError(f"data.kind={name!r}; expected one of {sorted(FLOW_DATASETS)}")
     root = get("root", None)
     if not root:
         raise ValueError(f"data={name}: set data.root= to the dataset folder")

@@ -12,7 +12,7 @@ import importlib
 from typing import Any
 
 _EXPORTS = {
-    "dfvo.eval.alignment": ("ALIGN_MODES", "align_trajectory", "apply_alignment", "estimate_alignment",
+    "dfvo.eval.alignment": ("ALIGN_MODES", "AlignMode", "align_trajectory", "apply_alignment", "estimate_alignment",
                             "rebase_to_first", "umeyama"),
     "dfvo.eval.depth_metrics": ("compute_depth_metrics", "depth_errors"),
     "dfvo.eval.flow_metrics": ("compute_flow_metrics",),

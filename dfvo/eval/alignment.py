@@ -9,9 +9,24 @@ Convention:
 
 from __future__ import annotations
 
+from enum import StrEnum
+
 import numpy as np
 
-ALIGN_MODES = ("6dof", "7dof", "scale", "none")
+from dfvo.validation import choice, choices
+
+
+class AlignMode(StrEnum):
+    """How a prediction is aligned to the ground truth before the metrics: ``6dof`` (Umeyama SE(3): metric depth),
+    ``7dof`` (Sim(3): monocular, up to scale), ``scale`` (scale only), ``none``."""
+
+    se3 = "6dof"
+    sim3 = "7dof"
+    scale = "scale"
+    none = "none"
+
+
+ALIGN_MODES = tuple(choices(AlignMode))
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
@@ -58,8 +73,7 @@ def estimate_alignment(gt: np.ndarray, pred: np.ndarray, align: str) -> tuple[fl
 
     ``scale`` is the least-squares scale about the origin, ``s = <p_gt, p_pred> / <p_pred, p_pred>``.
     """
-    if align not in ALIGN_MODES:
-        raise ValueError(f"align={align!r}: expected one of {ALIGN_MODES}")
+    choice(AlignMode, align, "align")
     p_gt, p_pred = gt[:, :3, 3], pred[:, :3, 3]
     if align == "none":
         return 1.0, np.eye(3), np.zeros(3)

@@ -23,7 +23,8 @@ import warnings
 
 import numpy as np
 
-from dfvo.eval.alignment import ALIGN_MODES, apply_alignment, estimate_alignment, umeyama
+from dfvo.eval.alignment import AlignMode, apply_alignment, estimate_alignment, umeyama
+from dfvo.validation import choice
 
 SEGMENT_LENGTHS = (100, 200, 300, 400, 500, 600, 700, 800)
 STEP_SIZE = 10
@@ -136,8 +137,7 @@ def evaluate_trajectory(gt: np.ndarray, pred: np.ndarray, align: str = "7dof", v
         frames evaluated), ``num_gt_frames``, ``gt_missing``, ``num_segments``, ``align``, ``align_scale``,
         ``sim3_scale`` (the 7-DoF scale, for diagnosis), ``scale_warning`` (str or None), ``per_length``.
     """
-    if align not in ALIGN_MODES:
-        raise ValueError(f"align={align!r}: expected one of {ALIGN_MODES}")
+    choice(AlignMode, align, "align")
     gt, pred = np.asarray(gt, np.float64), np.asarray(pred, np.float64)
     gt_known = np.isfinite(gt).all(axis=(1, 2)) if gt.ndim == 3 else None
     gt_missing = 0

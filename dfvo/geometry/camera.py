@@ -1,4 +1,4 @@
-"""Pinhole camera model: intrinsics under resize and crop, pixel grids, back-projection and projection.
+"""Pinhole camera model: intrinsics and flow fields under resize and crop, pixel grids, back-projection and projection.
 
 Convention:
     - Intrinsics ``K`` are (B,3,3) in pixels of the tensor they describe.
@@ -15,7 +15,10 @@ Convention:
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK_SHAPE
+from kornia.geometry import create_meshgrid
+from kornia.geometry.camera import unproject_points
 
 
 def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float, batch_size: int = 1,
@@ -74,18 +77,32 @@ def crop_intrinsics(K: torch.Tensor, top: int, left: int) -> torch.Tensor:
 
 def pixel_grid(height: int, width: int, device: torch.device | None = None,
                dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Pixel coordinates of every pixel centre.
+    """Pixel coordinates of every pixel centre (kornia's ``create_meshgrid`` in pixel units).
 
     Convention:
         (H,W,2) with ``[..., 0] = u`` (column) and ``[..., 1] = v`` (row), pixel centres at integers.
     """
-    v, u = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
-                          torch.arange(width, device=device, dtype=dtype), indexing="ij")
-    return torch.stack([u, v], dim=-1)
+    return create_meshgrid(height, width, normalized_coordinates=False, device=device, dtype=dtype)[0]
+
+
+def resize_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """A flow field resized to ``size`` with its vectors in the new pixel units (the one flow resize of the package).
+
+    Convention:
+        (B,2,h,w) in pixels of its own size -> (B,2,H,W) in pixels of ``size = (H, W)``: bilinear
+        (``align_corners=False``, the module's pixel convention, under which a displacement scales by exactly
+        ``W/w``, ``H/h``); the input itself when the size is unchanged.
+    """
+    h, w = flow.shape[-2:]
+    if (h, w) == tuple(size):
+        return flow
+    out = F.interpolate(flow, size=size, mode="bilinear", align_corners=False)
+    scale = torch.tensor([size[1] / w, size[0] / h], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
+    return out * scale
 
 
 def backproject_points(pixels: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """Lift pixels with their depths to 3-D points in the camera frame.
+    """Lift pixels with their depths to 3-D points in the camera frame (kornia's ``unproject_points``).
 
     Args:
         pixels: (B,N,2) pixel coordinates (u, v).
@@ -101,11 +118,7 @@ def backproject_points(pixels: torch.Tensor, depth: torch.Tensor, K: torch.Tenso
     KORNIA_CHECK_SHAPE(pixels, ["B", "N", "2"])
     KORNIA_CHECK_SHAPE(depth, ["B", "N"])
     KORNIA_CHECK_SHAPE(K, ["B", "3", "3"])
-    fx, fy = K[:, 0, 0, None], K[:, 1, 1, None]
-    cx, cy = K[:, 0, 2, None], K[:, 1, 2, None]
-    x = (pixels[..., 0] - cx) / fx * depth
-    y = (pixels[..., 1] - cy) / fy * depth
-    return torch.stack([x, y, depth], dim=-1)
+    return unproject_points(pixels, depth[..., None], K[:, None])
 
 
 def project_points(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-8) -> tuple[torch.Tensor, torch.Tensor]:

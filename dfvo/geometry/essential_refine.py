@@ -15,8 +15,8 @@ Convention:
     (1 - z) / (1 + z)^2`` (``z = r^2 / sigma^2``; the robust second-order correction of Triggs et al.,
     "Bundle adjustment - a modern synthesis", floored at ``curvature_floor`` so that rows beyond sigma add no
     negative curvature): far faster than plain reweighting when most rows sit near sigma. A step is kept only
-    when it lowers the robust cost. All arithmetic is float64; CPU time goes mostly to per-operation overhead,
-    so the code uses few, large tensor operations.
+    when it lowers the robust cost (the Levenberg-Marquardt core of :mod:`dfvo.geometry.lm`). All arithmetic is
+    float64; CPU time goes mostly to per-operation overhead, so the code uses few, large tensor operations.
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ import functools
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from kornia.geometry.epipolar import decompose_essential_matrix
+
+from dfvo.geometry.lm import levenberg_marquardt
 
 __all__ = ["skew", "so3_exp", "essential_from_rt", "refine_essential"]
 
@@ -175,36 +177,24 @@ def refine_essential(E: torch.Tensor, x_i: torch.Tensor, x_j: torch.Tensor, mask
         wh = wi * ((1.0 - z) / (1.0 + z).square()).clamp_min(curvature_floor)
         return (J * wh[:, None]) @ J.transpose(1, 2), ((J * wg[:, None]) @ r[..., None])[..., 0]
 
-    active = finite & (w.sum(-1) >= 5)
-    cost = cost_of(_residuals(R, t, None, Xi, Xj)[0])
-    lam = torch.full((P,), lambda_init, dtype=torch.float64, device=dev)
-    eye5 = torch.eye(5, dtype=torch.float64, device=dev)
-    moved = torch.ones_like(active)
-    basis = H = g = None
-    for _ in range(iterations):
-        if not bool(active.any()):
-            break
-        if bool(moved.any()):  # the normal equations change only where the last step was taken
-            basis_new = _tangent_basis(t)
-            H_new, g_new = normal_equations(R, t, basis_new)
-            if H is None:
-                basis, H, g = basis_new, H_new, g_new
-            else:
-                basis = torch.where(moved[:, None, None], basis_new, basis)
-                H, g = torch.where(moved[:, None, None], H_new, H), torch.where(moved[:, None], g_new, g)
-        A = H + (lam[:, None] * torch.diagonal(H, dim1=-2, dim2=-1).clamp_min(1e-300)).diag_embed() + 1e-300 * eye5
-        delta, info = torch.linalg.solve_ex(A, -g)
-        delta = torch.where((info == 0)[:, None] & active[:, None], torch.nan_to_num(delta), 0.0)
-        R_new = R @ so3_exp(delta[:, :3])
-        t_new = t + (delta[:, 3:, None] * basis).sum(1)
-        t_new = t_new / t_new.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-        cost_new = cost_of(_residuals(R_new, t_new, None, Xi, Xj)[0])
-        moved = active & torch.isfinite(cost_new) & (cost_new < cost)
-        converged = moved & (cost - cost_new <= tol * cost)
-        lam = torch.where(moved, lam * 0.1, lam * 10.0).clamp(1e-12, 1e12)
-        R, t = torch.where(moved[:, None, None], R_new, R), torch.where(moved[:, None], t_new, t)
-        cost = torch.where(moved, cost_new, cost)
-        active = active & ~converged & (lam < 1e6)
+    def evaluate(state: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        return cost_of(_residuals(state[0], state[1], None, Xi, Xj)[0]), ()
+
+    def linearise(state: tuple[torch.Tensor, ...], aux: tuple[torch.Tensor, ...]
+                  ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, ...]]:
+        basis = _tangent_basis(state[1])
+        H, g = normal_equations(state[0], state[1], basis)
+        return H, g, (basis,)
+
+    def retract(state: tuple[torch.Tensor, ...], delta: torch.Tensor, frame: tuple[torch.Tensor, ...]
+                ) -> tuple[torch.Tensor, ...]:
+        R_new = state[0] @ so3_exp(delta[:, :3])
+        t_new = state[1] + (delta[:, 3:, None] * frame[0]).sum(1)
+        return R_new, t_new / t_new.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+
+    (R, t), cost = levenberg_marquardt((R, t), evaluate, linearise, retract, finite & (w.sum(-1) >= 5),
+                                       iterations=iterations, lambda_init=lambda_init, tol=tol, max_lambda=1e6,
+                                       diagonal_floor=1e-300, ridge=1e-300)
     ok = finite & (w.sum(-1) >= 5)
     return (torch.where(ok[:, None, None], essential_from_rt(R, t), E),
             torch.where(ok, cost, torch.full_like(cost, float("inf"))))

@@ -30,8 +30,30 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.lm import refine_pose_lm, reprojection_residuals
 from dfvo.geometry.ransac import hypothesise_and_verify, pick_best
+from dfvo.validation import check
 
 SAMPLE_SIZE = 6
+
+
+@dataclass
+class PnPConfig:
+    """PnP-RANSAC with Levenberg-Marquardt refinement (``tracker.pnp`` of :class:`dfvo.tracking.config.TrackerConfig`;
+    the defaults of :func:`solve_pnp_ransac`).
+
+    Attributes:
+        threshold_px: inlier reprojection threshold (pixels). iterations: minimal samples per repeat.
+        repeats: RANSAC repeats. min_points: PnP fails with fewer usable 3-D/2-D rows.
+    """
+
+    threshold_px: float = 1.0
+    iterations: int = 100
+    repeats: int = 5
+    min_points: int = 10
+
+    def __post_init__(self) -> None:
+        check(self.threshold_px > 0 and int(self.iterations) > 0 and int(self.repeats) > 0,
+               f"tracker.pnp: threshold_px={self.threshold_px}, iterations={self.iterations}, repeats={self.repeats}; "
+               "expected positive values")
 
 
 @dataclass
@@ -174,10 +196,10 @@ def solve_pnp_ransac(
     pixels: torch.Tensor,
     mask: torch.Tensor,
     K: torch.Tensor,
-    threshold_px: float = 1.0,
-    iterations: int = 100,
-    repeats: int = 5,
-    min_points: int = 6,
+    threshold_px: float = PnPConfig.threshold_px,
+    iterations: int = PnPConfig.iterations,
+    repeats: int = PnPConfig.repeats,
+    min_points: int = PnPConfig.min_points,
     generators: list[torch.Generator] | None = None,
     refine_rounds: int = 4,
 ) -> PnPResult:

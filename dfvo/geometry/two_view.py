@@ -28,9 +28,34 @@ from kornia.geometry.homography import find_homography_dlt
 
 from dfvo.geometry.essential_refine import refine_essential
 from dfvo.geometry.ransac import hypothesise_and_verify, pick_best, rank_models, score_models
+from dfvo.validation import check
 
-__all__ = ["TwoViewResult", "normalise_points", "sampson_sq", "homography_error_sq", "find_essential_ransac",
-           "find_homography_ransac", "decompose_essential", "ray_depths"]
+__all__ = ["EssentialConfig", "TwoViewResult", "normalise_points", "sampson_sq", "homography_error_sq",
+           "find_essential_ransac", "find_homography_ransac", "decompose_essential", "ray_depths"]
+
+
+@dataclass
+class EssentialConfig:
+    """Essential-matrix RANSAC and its validity rules (``tracker.essential`` of
+    :class:`dfvo.tracking.config.TrackerConfig`; the RANSAC defaults of :func:`find_essential_ransac`).
+
+    Attributes:
+        threshold_px: RANSAC inlier threshold in pixels (converted to normalised coordinates).
+        iterations: minimal samples per RANSAC repeat; repeats: repeats, the most inliers wins.
+        min_correspondences: with this many or fewer valid correspondences E is invalid.
+        min_cheirality_fraction: E is invalid when fewer rows pass cheirality.
+    """
+
+    threshold_px: float = 0.2
+    iterations: int = 20
+    repeats: int = 5
+    min_correspondences: int = 10
+    min_cheirality_fraction: float = 0.1
+
+    def __post_init__(self) -> None:
+        check(self.threshold_px > 0, f"tracker.essential.threshold_px={self.threshold_px}; expected > 0")
+        check(int(self.iterations) > 0 and int(self.repeats) > 0,
+               f"tracker.essential: iterations={self.iterations}, repeats={self.repeats}; expected positive integers")
 
 
 @dataclass
@@ -137,7 +162,8 @@ def _gather_rows(x: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
 
 
 def find_essential_ransac(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
-                          threshold_px: float = 0.2, iterations: int = 20, repeats: int = 5,
+                          threshold_px: float = EssentialConfig.threshold_px,
+                          iterations: int = EssentialConfig.iterations, repeats: int = EssentialConfig.repeats,
                           generators: list[torch.Generator] | None = None, refine: bool = True,
                           preview: int = 256, max_real: int = 6, refine_iterations: int = 5,
                           refine_starts: int = 2) -> TwoViewResult:

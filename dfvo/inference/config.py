@@ -6,7 +6,10 @@ The dataclasses here and in :mod:`dfvo.tracking.config`, :mod:`dfvo.sources.conf
 (``tracker.scale.methd=...``) or a wrong type fails before anything runs.
 
 ``register_configs()`` stores the schemas in Hydra's ConfigStore (``infer_schema`` for the root, ``data/schema/KIND``
-for each dataset kind); it runs on import of this module, before Hydra composes.
+for each dataset kind); it runs on import of this module, before Hydra composes. The data schemas describe the one
+sequence a run tracks and are discriminated by ``kind`` (``data=KIND``), like the training data schemas
+(:mod:`dfvo.training.data_config`, classes named ``*TrainDataConfig``). Values are checked with
+:mod:`dfvo.validation`, whose :func:`~dfvo.validation.typed` turns a node into its dataclass.
 """
 
 from __future__ import annotations
@@ -16,19 +19,20 @@ from enum import StrEnum
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig
 
 from dfvo.data.kitti_odometry import selects_kitti_odometry
+from dfvo.eval.alignment import AlignMode
 from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
 from dfvo.tracking.config import TrackerConfig
 from dfvo.training.online_flow import OnlineFlowConfig
+from dfvo.validation import check, choice, typed
 
-__all__ = ["ALIGN_MODES", "PoseFormat", "ImgResConfig", "DataConfig", "SyntheticDataConfig", "KittiOdomDataConfig",
-           "KittiRawDataConfig", "FolderDataConfig", "EurocDataConfig", "TumDataConfig", "VideoDataConfig",
-           "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig", "InferConfig", "register_configs", "typed"]
-
-
-ALIGN_MODES = ("6dof", "7dof", "scale")  # 6dof: metric depth; 7dof: monocular, up to scale; scale: scale only
+__all__ = ["PoseFormat", "OverlapMode", "ViewerKind", "ImgResConfig", "DataConfig", "SyntheticDataConfig",
+           "KittiOdomDataConfig", "KittiRawDataConfig", "FolderDataConfig", "EurocDataConfig", "TumDataConfig",
+           "VideoDataConfig", "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig", "InferConfig", "register_configs",
+           "typed"]
+# typed: dfvo.validation.typed, re-exported (scripts import it from here)
 
 
 class PoseFormat(StrEnum):
@@ -36,6 +40,23 @@ class PoseFormat(StrEnum):
 
     kitti = "kitti"
     tum = "tum"
+
+
+class OverlapMode(StrEnum):
+    """What runs beside the networks in the inference loop (``overlap``; :mod:`dfvo.inference.loop`): ``none`` (the
+    serial loop), ``load`` (frames decoded in a loader thread) or ``full`` (also the refinement and the tracker in a
+    tracker thread)."""
+
+    none = "none"
+    load = "load"
+    full = "full"
+
+
+class ViewerKind(StrEnum):
+    """``rerun`` records the run to ``OUT/run.rrd`` (``viewer.kind``); ``none`` does not."""
+
+    none = "none"
+    rerun = "rerun"
 
 
 @dataclass
@@ -200,7 +221,7 @@ class TensorboardConfig:
 class ViewerConfig:
     """``kind: rerun`` writes ``OUT/run.rrd`` as frames are processed (``spawn``: also open the live viewer)."""
 
-    kind: str = "none"
+    kind: ViewerKind = ViewerKind.none
     spawn: bool = False
 
 
@@ -215,8 +236,13 @@ class InferConfig:
             number (``seq=10``) with the default data runs KITTI odometry from ``DFVO_KITTI_ODOM_ROOT``.
         out_dir: output folder (default ``outputs/infer/<time>``; with ``-m`` each job writes a subfolder named by
             its overrides).
-        align: trajectory alignment for ``metrics.json``. pose_format: trajectory file format.
+        align: trajectory alignment for ``metrics.json`` (:class:`dfvo.eval.alignment.AlignMode`: ``6dof`` for
+            metric depth, ``7dof`` for monocular depth, ``scale``, ``none``). pose_format: trajectory file format.
         batch_size: frame pairs per network batch. device: ``cpu``, ``cuda``, ``auto`` (CUDA when available).
+        overlap: what runs beside the networks (:class:`OverlapMode`; ``load``: frame decoding in a thread, ``full``:
+            also the refinement and the tracker, ``none``: serial); the poses are the same in every mode.
+        cuda_sync: synchronise CUDA at every stage boundary, so each stage's time in ``summary.json`` is its GPU
+            work (it serialises the GPU with the host: measure FPS without it).
         num_threads: torch threads (null: torch's default). progress: progress bar on stderr.
         verbose: full tracebacks for expected errors (bad data, checkpoint, setting).
         warn_fallback_rate: loud warning when more frames than this fell back to constant motion / PnP failed.
@@ -235,6 +261,8 @@ class InferConfig:
     pose_format: PoseFormat = PoseFormat.kitti
     batch_size: int = 4
     device: str = "cpu"
+    overlap: OverlapMode = OverlapMode.load
+    cuda_sync: bool = False
     num_threads: int | None = None
     progress: bool = True
     verbose: bool = False
@@ -245,11 +273,8 @@ class InferConfig:
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
 
     def __post_init__(self) -> None:
-        if self.align not in ALIGN_MODES:
-            raise ValueError(f"align={self.align!r}; expected one of {ALIGN_MODES} (6dof for metric depth, 7dof for "
-                             "monocular depth)")
-        if int(self.batch_size) < 1:
-            raise ValueError(f"batch_size={self.batch_size}; expected a positive number of frame pairs")
+        choice(AlignMode, self.align, "align")
+        check(int(self.batch_size) >= 1, f"batch_size={self.batch_size}; expected a positive number of frame pairs")
         height = self.data.get("camera_height") if isinstance(self.data, DictConfig) else \
             getattr(self.data, "camera_height", None)
         kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)
@@ -268,14 +293,6 @@ def register_configs() -> None:
     cs.store(name="infer_schema", node=InferConfig)
     for kind, schema in DATA_SCHEMAS.items():
         cs.store(group="data/schema", name=kind, node=schema)
-
-
-def typed(node: DictConfig | Any, schema: type | None = None) -> Any:
-    """A config node as its dataclass instance (validated by the dataclass' ``__post_init__``); ``schema`` merges an
-    untyped node (e.g. a ``data`` node built in Python) into that dataclass first."""
-    if schema is not None and OmegaConf.get_type(node) is not schema:
-        node = OmegaConf.merge(OmegaConf.structured(schema), node)
-    return OmegaConf.to_object(node)
 
 
 register_configs()

@@ -8,18 +8,19 @@ Convention:
     of the earlier frame of each pair, in metres (with ``tracker.scale.depth_views=2`` also the later frame's);
     each frame's depth is computed once. Frame 0's pose is the identity and has no record.
 
-Overlap (``overlap``): ``"load"`` (the default) decodes and resizes the frames of batch k+1 in a loader thread
-while the main thread works on batch k (pinned for a CUDA copy; not for the synthetic world, whose renderer the
-oracle sources share and whose caches are not thread-safe: it renders in the main thread). ``"full"`` also moves the
-refinement and the tracker to a tracker thread, which works on batch k-1 while the main thread runs the flow and
-depth networks of batch k; on a CPU the two busy threads then get half of the torch threads each (restored after
-the loop), so their OpenMP teams do not compete for the same cores. ``"none"`` is the serial loop: on a CPU shared
-with other processes it was 3-10x slower than ``"load"`` (GNU OpenMP's workers busy-wait long after each parallel
-region unless the process has more OpenMP threads than CPUs, as the loader thread makes it; ``docs/speed.md``).
-The tracker's state is sequential, so batches reach it one at a time and in order; each frame draws its random
-samples from its own seeded generator, so the poses are the same, bit for bit, in every mode and for any batch
-size. Stage times of different threads overlap (``load``, ``refine`` and ``tracker`` are measured in the thread
-that runs them; ``wait_load`` and ``wait_tracker`` are what the main thread spent blocked on them).
+Overlap (``overlap``, :class:`dfvo.inference.config.OverlapMode`; ``overlap=`` of ``infer.py``): ``"load"`` (the
+default) decodes and resizes the frames of batch k+1 in a loader thread while the main thread works on batch k
+(pinned for a CUDA copy; not for the synthetic world, whose renderer the oracle sources share and whose caches are
+not thread-safe: it renders in the main thread). ``"full"`` also moves the refinement and the tracker to a tracker
+thread, which works on batch k-1 while the main thread runs the flow and depth networks of batch k; on a CPU the two
+busy threads then get half of the torch threads each (restored after the loop), so their OpenMP teams do not compete
+for the same cores. ``"none"`` is the serial loop: on a CPU shared with other processes it is much slower than
+``"load"`` (GNU OpenMP's workers busy-wait long after each parallel region unless the process has more OpenMP
+threads than CPUs, as the loader thread makes it; measured in docs/speed.md, "Overlap"). The tracker's state is
+sequential, so batches reach it one at a time and in order; each frame draws its random samples from its own seeded
+generator, so the poses are the same, bit for bit, in every mode and for any batch size. Stage times of different
+threads overlap (``load``, ``refine`` and ``tracker`` are measured in the thread that runs them; ``wait_load`` and
+``wait_tracker`` are what the main thread spent blocked on them).
 """
 
 from __future__ import annotations
@@ -32,28 +33,22 @@ from dataclasses import dataclass
 import torch
 
 from dfvo.data.sequence import FrameSequence
+from dfvo.inference.config import InferConfig, OverlapMode
 from dfvo.inference.timing import StageTimer
 from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.tracking import FrameResult, VisualOdometry
 from dfvo.tracking.config import TrackerMode
+from dfvo.validation import choice
 
-__all__ = ["FrameRecord", "track_sequence", "OVERLAP", "OVERLAP_MODES"]
-
-OVERLAP_MODES = ("none", "load", "full")
-OVERLAP = "load"
-"""Default of ``track_sequence(overlap=None)``: one of :data:`OVERLAP_MODES` (see the module docstring; benchmarks
-set it to compare the modes)."""
+__all__ = ["FrameRecord", "track_sequence"]
 
 
-def _overlap_mode(overlap: str | bool | None) -> str:
-    """``none`` | ``load`` | ``full`` of an ``overlap`` argument (None: :data:`OVERLAP`; True: full; False: none)."""
-    overlap = OVERLAP if overlap is None else overlap
+def _overlap_mode(overlap: OverlapMode | str | bool) -> OverlapMode:
+    """The :class:`OverlapMode` of an ``overlap`` argument (True: full; False: none)."""
     if isinstance(overlap, bool):
-        return "full" if overlap else "none"
-    if overlap not in OVERLAP_MODES:
-        raise ValueError(f"overlap={overlap!r}; expected one of {OVERLAP_MODES} (or True/False)")
-    return str(overlap)
+        return OverlapMode.full if overlap else OverlapMode.none
+    return choice(OverlapMode, overlap, "overlap")
 
 
 @dataclass
@@ -133,7 +128,8 @@ def _batches(length: int, batch_size: int) -> list[list[int]]:
 
 def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSource, vo: VisualOdometry, *,
                    refine: FlowRefinementConfig | None, batch_size: int, timer: StageTimer, device: str = "cpu",
-                   finetuner: object | None = None, overlap: str | bool | None = None) -> Iterator[FrameRecord]:
+                   finetuner: object | None = None,
+                   overlap: OverlapMode | str | bool = InferConfig.overlap) -> Iterator[FrameRecord]:
     """Track ``seq`` and yield one :class:`FrameRecord` per frame 1..N-1, in order, as soon as it is known.
 
     Args:
@@ -145,7 +141,7 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
         device: where the frames, networks and tracker tensors live (``cpu``, ``cuda``, ``cuda:N``).
         finetuner: optional online flow finetuner (:class:`dfvo.training.online_flow.OnlineFlowFinetuner`).
         overlap: ``"none"``, ``"load"`` (decoding in a background thread) or ``"full"`` (also the refinement and
-            the tracker; see the module docstring); True: ``"full"``, False: ``"none"``, None: :data:`OVERLAP`.
+            the tracker; see the module docstring); True: ``"full"``, False: ``"none"``.
     """
     mode = _overlap_mode(overlap)
     K = seq.K.to(device)[None]
@@ -155,11 +151,11 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
     frames[0] = [0] + frames[0]
     cuda = torch.device(device).type == "cuda"
     # the synthetic world's render caches are not thread-safe and its oracle sources use them in the main thread
-    loader = _Loader(seq, frames, timer, background=mode != "none" and seq.world is None,
+    loader = _Loader(seq, frames, timer, background=mode != OverlapMode.none and seq.world is None,
                      pin=cuda and torch.cuda.is_available())
-    tracker_pool = ThreadPoolExecutor(1, thread_name_prefix="dfvo-track") if mode == "full" else None
+    tracker_pool = ThreadPoolExecutor(1, thread_name_prefix="dfvo-track") if mode == OverlapMode.full else None
     threads = torch.get_num_threads()
-    if mode == "full" and not cuda:  # two busy threads share the cores: half of the torch threads each
+    if mode == OverlapMode.full and not cuda:  # two busy threads share the cores: half of the torch threads each
         torch.set_num_threads(max(1, threads // 2))
 
     def refine_flows(work: _Batch) -> None:
@@ -170,7 +166,7 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
         work.share["t_refine"] = timer.last["refine"] / len(work.idx)
 
     def track(work: _Batch) -> tuple[_Batch, list[FrameResult]]:
-        if mode == "full":  # the refinement runs in the tracker thread, beside the next batch's networks
+        if mode == OverlapMode.full:  # the refinement runs in the tracker thread, beside the next batch's networks
             refine_flows(work)
         n = len(work.idx)
         with timer("tracker"):  # only this thread tracks: last["tracker"] is this call's

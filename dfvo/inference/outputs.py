@@ -15,6 +15,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from dfvo.inference.config import InferConfig
 from dfvo.tracking.diagnostics import DIAGNOSTIC_FIELDS, FrameDiagnostics
 
 __all__ = ["prepare_out_dir", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary"]
@@ -80,7 +81,8 @@ class FramesCsv:
         self._f.close()
 
 
-def fallback_summary(diagnostics: list[FrameDiagnostics], threshold: float = 0.2) -> dict[str, Any]:
+def fallback_summary(diagnostics: list[FrameDiagnostics],
+                     threshold: float = InferConfig.warn_fallback_rate) -> dict[str, Any]:
     """Counts of the trackers used and of the frames that fell back to constant motion or whose PnP failed.
 
     Args:

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from dfvo.inference.config import InferConfig, PoseFormat, typed
+from dfvo.inference.config import InferConfig, PoseFormat, ViewerKind
 from dfvo.inference.frames import build_sequence
 from dfvo.inference.loop import FrameRecord, track_sequence
 from dfvo.inference.outputs import FramesCsv, prepare_out_dir
@@ -32,6 +32,7 @@ from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, che
 from dfvo.tracking import VisualOdometry
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.training.online_flow import OnlineFlowFinetuner
+from dfvo.validation import typed
 
 __all__ = ["RunInterrupted", "run_inference", "job_output_dir"]
 
@@ -134,9 +135,7 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
 def _observers(cfg: InferConfig, out: Path, seq: Any) -> list[Any]:
     """The per-frame loggers the config asks for (TensorBoard, the Rerun recording)."""
     observers: list[Any] = []
-    if cfg.viewer.kind not in ("none", "rerun"):
-        raise ValueError(f"viewer.kind={cfg.viewer.kind!r}; expected 'none' or 'rerun' (viewer=none|rerun)")
-    if cfg.viewer.kind == "rerun":
+    if cfg.viewer.kind == ViewerKind.rerun:
         hw = tuple(seq.image(0).shape[-2:])
         observers.append(RerunObserver(out / "run.rrd", seq.K, hw, gt_poses=seq.poses, spawn=cfg.viewer.spawn))
     if cfg.tensorboard.enabled:
@@ -149,7 +148,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     from tqdm import tqdm
 
     vo = VisualOdometry(cfg.tracker)
-    timer = StageTimer()
+    timer = StageTimer(cuda_sync=cfg.cuda_sync)
     pose_file = out / f"{seq.name}.txt"
     if cfg.pose_format == PoseFormat.tum and seq.timestamps is None:
         raise ValueError(f"pose_format=tum needs the frames' timestamps and {seq.name} has none (data.times=FILE "
@@ -165,7 +164,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     try:
         with _SignalsToInterrupt():
             for record in track_sequence(seq, flow_src, depth_src, vo, refine=refine, batch_size=cfg.batch_size,
-                                         timer=timer, device=device, finetuner=finetuner):
+                                         timer=timer, device=device, finetuner=finetuner, overlap=cfg.overlap):
                 _write_frame(record, poses, table, trajectory, diagnostics, observers, _stamp(seq, record.index))
                 bar.update(1)
                 bar.set_postfix(fps=f"{len(diagnostics) / (time.perf_counter() - start):.2f}")

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from dfvo.geometry.camera import backproject_points
+from dfvo.inference.config import ViewerConfig
 from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
@@ -54,7 +55,7 @@ class RerunObserver:
     """
 
     def __init__(self, path: Path, K: torch.Tensor, image_hw: tuple[int, int], gt_poses: np.ndarray | None = None,
-                 spawn: bool = False) -> None:
+                 spawn: bool = ViewerConfig.spawn) -> None:
         self.K = K.detach().cpu()
         self.recorder = RerunRecorder(path, self.K, image_hw, spawn=spawn, gt_poses=gt_poses)
         self.T_w_prev = np.eye(4)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dfvo.inference.config import TensorboardConfig
 from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.vis.colour import flow_to_color, scalar_to_color
@@ -25,7 +26,7 @@ class TensorboardObserver:
         folder: the event folder. every: log images of every ``every``-th frame (scalars of every frame).
     """
 
-    def __init__(self, folder: Path, every: int = 10) -> None:
+    def __init__(self, folder: Path, every: int = TensorboardConfig.every) -> None:
         from torch.utils.tensorboard import SummaryWriter
 
         self.writer = SummaryWriter(str(folder))

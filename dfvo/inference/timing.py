@@ -19,23 +19,22 @@ from contextlib import contextmanager
 
 import torch
 
-__all__ = ["StageTimer", "CUDA_SYNC", "cuda_sync"]
+from dfvo.inference.config import InferConfig
 
-CUDA_SYNC = False
-"""Synchronise CUDA at every stage boundary, so a stage's time is its GPU work (benchmarks set it for per-stage GPU
-times; it serialises the GPU with the host, so runs with it are slower: measure FPS without it)."""
-
-
-def cuda_sync() -> None:
-    """``torch.cuda.synchronize()`` when :data:`CUDA_SYNC` is set (and CUDA is available); else nothing."""
-    if CUDA_SYNC and torch.cuda.is_available():
-        torch.cuda.synchronize()
+__all__ = ["StageTimer"]
 
 
 class StageTimer:
-    """Accumulates seconds per named stage; ``last[name]`` is the duration of the stage's latest call."""
+    """Accumulates seconds per named stage; ``last[name]`` is the duration of the stage's latest call.
 
-    def __init__(self) -> None:
+    Args:
+        cuda_sync: synchronise CUDA at every stage boundary (``cuda_sync`` of :class:`InferConfig`), so a stage's
+            time is its GPU work; it serialises the GPU with the host, so runs with it are slower (measure FPS
+            without it). Nothing happens where CUDA is not available.
+    """
+
+    def __init__(self, cuda_sync: bool = InferConfig.cuda_sync) -> None:
+        self.cuda_sync = bool(cuda_sync)
         self.total: dict[str, float] = {}
         self.cpu_total: dict[str, float] = {}
         self.last: dict[str, float] = {}
@@ -44,13 +43,17 @@ class StageTimer:
     @contextmanager
     def __call__(self, name: str) -> Iterator[None]:
         """Time the block as stage ``name`` (wall and process CPU time)."""
-        cuda_sync()
+        self._sync()
         start, cpu = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
-            cuda_sync()
+            self._sync()
             self.add(name, time.perf_counter() - start, time.process_time() - cpu)
+
+    def _sync(self) -> None:
+        if self.cuda_sync and torch.cuda.is_available():
+            torch.cuda.synchronize()
 
     def add(self, name: str, seconds: float, cpu_seconds: float | None = None) -> None:
         """Add ``seconds`` of wall time (and ``cpu_seconds`` of process CPU time, if known) to stage ``name`` (from

@@ -38,16 +38,13 @@ Methods (``flow.refine.method``), both dense (every pixel of both flows):
       iteration. ``method=symmetric iterations=5 coarse_iterations=0`` is the refinement this project used before
       (5 iterations at the working resolution).
 
-Measured on KITTI 06 (50 pairs, 640x192, the shipped flow network; ``benchmarks/refine_schedules.py``,
-``docs/speed.md``): the default (inverse compositional, 3 coarse + 2 full iterations) selects more accurate
-correspondences than the former ``symmetric`` x5 (epipolar error under the true pose, median 0.134 vs 0.142 px) at
-a third of its CPU time (65-78 vs 241 ms per pair, 1 thread).
-Refining only the candidates the selection could pick (an 11x11 window per candidate, gathered and summed) was
-measured too (``docs/speed.md``, 1 thread, CPU time): one iteration over 2000 / 5000 / 10000 windows costs 6.3 / 15.0
-/ 29.4 ms against 15.9 ms for a dense iteration over both flows of a 640x192 pair. The selection ranks every pixel
-by its forward-backward inconsistency, so it needs the forward flow at each candidate and the backward flow at the 4
-pixels around each candidate's target: well over 5000 windows per pair, i.e. no saving over the dense schedule, and
-a different test (the ranking would see only the candidates).
+The default (inverse compositional, 3 coarse + 2 full iterations) was chosen by measurement against the former
+``symmetric`` x5: more accurate correspondences at a fraction of its CPU time (docs/speed.md, "Flow refinement",
+``benchmarks/refine_schedules.py``). Refining only the candidates the selection could pick (an 11x11 window per
+candidate, gathered and summed) does not pay: the selection ranks every pixel by its forward-backward
+inconsistency, so it needs the forward flow at each candidate and the backward flow at the 4 pixels around each
+candidate's target, well over 5000 windows per pair, which cost more than a dense iteration over both flows (the
+dense box sums are O(1) per pixel; measured in docs/speed.md), and the ranking would see only the candidates.
 
 Modes (``flow.refine.mode``): ``dense`` is the above; ``pyramid`` replaces it by the coarse-to-fine sparse
 refinement at the candidates the selection can use (:mod:`dfvo.matching.pyramid_refinement`: errors of several
@@ -69,11 +66,12 @@ from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
-from kornia.color import rgb_to_grayscale
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
-from kornia.filters import gaussian_blur2d
 
+from dfvo.matching.image_ops import box_mean, gradient, smooth
+from dfvo.matching.image_ops import grey as to_grey
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, refine_pairs_pyramid, refine_pyramid
+from dfvo.validation import choice
 
 __all__ = ["RefinementMethod", "FlowRefinementConfig", "refine_flow", "refine_forward_backward",
            "refine_consecutive"]
@@ -125,11 +123,8 @@ class FlowRefinementConfig:
     pyramid: PyramidRefinementConfig = field(default_factory=PyramidRefinementConfig)
 
     def __post_init__(self) -> None:
-        try:
-            self.mode = RefinementMode(getattr(self.mode, "value", self.mode))
-        except ValueError:
-            raise ValueError(f"flow.refine.mode={self.mode!r}; expected one of "
-                             f"{[m.value for m in RefinementMode]}") from None
+        self.mode = choice(RefinementMode, self.mode, "flow.refine.mode")
+        self.method = choice(RefinementMethod, self.method, "flow.refine.method")
         if int(self.iterations) < 0:
             raise ValueError(f"flow.refine.iterations={self.iterations}; expected >= 0 (0 disables refinement)")
         if int(self.coarse_iterations) < 0:
@@ -139,51 +134,6 @@ class FlowRefinementConfig:
         if float(self.sigma) < 0 or float(self.min_eigenvalue) < 0 or float(self.max_step) <= 0:
             raise ValueError(f"flow.refine: sigma={self.sigma}, min_eigenvalue={self.min_eigenvalue}, max_step="
                              f"{self.max_step}; expected sigma >= 0, min_eigenvalue >= 0, max_step > 0")
-        try:
-            self.method = RefinementMethod(getattr(self.method, "value", self.method))
-        except ValueError:
-            raise ValueError(f"flow.refine.method={self.method!r}; expected one of "
-                             f"{[m.value for m in RefinementMethod]}") from None
-
-
-def _grey(image: torch.Tensor) -> torch.Tensor:
-    """(N,1,H,W) float32 grey of (N,3,H,W) or (N,1,H,W) images."""
-    image = image.to(torch.float32)
-    return rgb_to_grayscale(image) if image.shape[1] == 3 else image
-
-
-def _smooth(grey: torch.Tensor, sigma: float) -> torch.Tensor:
-    if sigma > 0:
-        k = 2 * int(round(3 * sigma)) + 1
-        grey = gaussian_blur2d(grey, (k, k), (sigma, sigma), border_type="replicate", separable=True)
-    return grey
-
-
-def _gradient(image: torch.Tensor) -> torch.Tensor:
-    """Central differences (d/du, d/dv) of (B,1,H,W) with replicated borders -> (B,2,H,W).
-
-    The same numbers as ``kornia.filters.spatial_gradient(mode="diff")``, without its 3x3 convolution (~10x slower
-    on a CPU)."""
-    p = F.pad(image, (1, 1, 1, 1), mode="replicate")
-    return torch.cat([0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]), 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])], 1)
-
-
-def _box(x: torch.Tensor, window: int) -> torch.Tensor:
-    """Mean over a ``window`` x ``window`` neighbourhood (replicate border): (B,C,H,W) float32 -> same.
-
-    Running sums (``cumsum``) along each axis: O(1) per pixel whatever the window, several times faster on a CPU
-    than pooling or depthwise convolutions. Each row (then column) has its mean removed before its running sum and
-    added back after, so the sums stay small (a random walk, not a ramp) and float32 keeps them exact to ~1e-6
-    of the values' spread even for flows of hundreds of pixels.
-    """
-    r = window // 2
-    x = F.pad(x, (r + 1, r, r + 1, r), mode="replicate")
-    mean = x.mean(-1, keepdim=True)
-    c = (x - mean).cumsum(-1)
-    x = (c[..., window:] - c[..., :-window]) / window + mean
-    mean = x.mean(-2, keepdim=True)
-    c = (x - mean).cumsum(-2)
-    return (c[..., window:, :] - c[..., :-window, :]) / window + mean
 
 
 def _check_inputs(image1: torch.Tensor, image2: torch.Tensor, flow: torch.Tensor, what: str) -> None:
@@ -212,7 +162,7 @@ class _Templates:
 
 def _invert(prods: torch.Tensor, cfg: FlowRefinementConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Inverse (xx, xy, yy) of the window means of ``prods`` (N,3,H,W) and where it is usable (N,1,H,W)."""
-    sxx, sxy, syy = _box(prods, int(cfg.window)).split(1, 1)
+    sxx, sxy, syy = box_mean(prods, int(cfg.window)).split(1, 1)
     det = sxx * syy - sxy * sxy
     lam_min = 0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy * sxy)
     ok = (lam_min > cfg.min_eigenvalue) & (det > 0)
@@ -222,8 +172,8 @@ def _invert(prods: torch.Tensor, cfg: FlowRefinementConfig) -> tuple[torch.Tenso
 
 def _templates(grey: torch.Tensor, cfg: FlowRefinementConfig) -> _Templates:
     """Templates of (N,1,H,W) grey frames (smoothed here)."""
-    grey = _smooth(grey, float(cfg.sigma))
-    grad = _gradient(grey)
+    grey = smooth(grey, float(cfg.sigma))
+    grad = gradient(grey)
     gx, gy = grad.split(1, 1)
     prods = torch.cat([gx * gx, gx * gy, gy * gy], 1)
     inv, ok = _invert(prods, cfg)
@@ -271,7 +221,7 @@ def _refine_ic(t: _Templates, template: torch.Tensor, target: torch.Tensor, u: t
                                align_corners=True)
         r = (warped - i1).mul_(inside)
         rhs = (p_x * u[:, :1]).addcmul_(p_y, u[:, 1:]).addcmul_(g, r, value=-1.0)  # g g^T u(y) - g r
-        b = _box(rhs, w)
+        b = box_mean(rhs, w)
         new = (inv_x * b[:, :1]).addcmul_(inv_y, b[:, 1:])
         u = u + new.sub_(u).clamp_(-step_max, step_max).mul_(movable & inside)
     return u
@@ -280,8 +230,8 @@ def _refine_ic(t: _Templates, template: torch.Tensor, target: torch.Tensor, u: t
 # ---------------------------------------------------------------------------------------- symmetric (second order)
 def _prepare_symmetric(grey: torch.Tensor, cfg: FlowRefinementConfig) -> torch.Tensor:
     """(N,3,H,W) float32 per frame of (N,1,H,W) grey frames: the smoothed grey image and its gradients (gx, gy)."""
-    grey = _smooth(grey, float(cfg.sigma))
-    return torch.cat([grey, _gradient(grey)], 1)
+    grey = smooth(grey, float(cfg.sigma))
+    return torch.cat([grey, gradient(grey)], 1)
 
 
 def _refine_symmetric(frames: torch.Tensor, template: torch.Tensor, target: torch.Tensor, u: torch.Tensor,
@@ -302,7 +252,7 @@ def _refine_symmetric(frames: torch.Tensor, template: torch.Tensor, target: torc
         r = warped[:, :1] - i1
         g = (grad1 + warped[:, 1:]) * (0.5 * (inside & finite))  # a target outside image 2 constrains nothing
         gg = g[:, pick_a] * g[:, pick_b]  # gxx, gxy, gyy
-        sums = _box(torch.cat([gg, gg[:, :2] * u[:, :1] + gg[:, 1:] * u[:, 1:] - g * r], 1), w)
+        sums = box_mean(torch.cat([gg, gg[:, :2] * u[:, :1] + gg[:, 1:] * u[:, 1:] - g * r], 1), w)
         sxx, sxy, syy, bx, by = sums.split(1, 1)
         det = sxx * syy - sxy * sxy
         trace = sxx + syy
@@ -332,7 +282,7 @@ def _refine_pairs(frames: torch.Tensor, template: torch.Tensor, target: torch.Te
         prepare, refine = _prepare_symmetric, _refine_symmetric
     else:
         prepare, refine = _templates, _refine_ic
-    grey = _grey(frames)
+    grey = to_grey(frames)
     finite = torch.isfinite(flow).all(1, keepdim=True)  # (P,1,H,W)
     u = torch.where(finite, flow, torch.zeros_like(flow)).to(torch.float32)
     H, W = flow.shape[-2:]

@@ -40,13 +40,33 @@ Convention:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-__all__ = ["PyramidRefinementConfig", "build_pyramid", "select_candidates", "lucas_kanade", "refine_pyramid",
-           "refine_pairs_pyramid"]
+from dfvo.matching.image_ops import box_mean, gradient, smooth
+from dfvo.matching.image_ops import grey as to_grey
+from dfvo.validation import choice
+
+__all__ = ["BackwardInit", "CandidatePick", "PyramidRefinementConfig", "build_pyramid", "select_candidates",
+           "lucas_kanade", "refine_pyramid", "refine_pairs_pyramid"]
+
+
+class BackwardInit(StrEnum):
+    """Start of the backward refinement: the ``network``'s backward flow at the target, or minus the refined
+    ``forward`` flow."""
+
+    network = "network"
+    forward = "forward"
+
+
+class CandidatePick(StrEnum):
+    """Which pixel of each cell is a candidate: ``corner`` (the largest Shi–Tomasi score) or ``grid`` (the centre)."""
+
+    corner = "corner"
+    grid = "grid"
 
 
 @dataclass
@@ -83,9 +103,9 @@ class PyramidRefinementConfig:
     min_eigenvalue: float = 1e-5
     max_step: float = 2.0
     max_residual: float = 0.05
-    backward_init: str = "network"
+    backward_init: BackwardInit = BackwardInit.network
     backward_iterations: list[int] | None = None
-    candidates: str = "corner"
+    candidates: CandidatePick = CandidatePick.corner
 
     def __post_init__(self) -> None:
         its = list(self.iterations)
@@ -101,60 +121,29 @@ class PyramidRefinementConfig:
                    f"{self.cell}; expected >= 1"),
                   (len(self.grid) == 2 and min(self.grid) >= 1, f"grid={self.grid}; expected [rows, cols] >= 1"),
                   (self.sigma >= 0 and self.min_eigenvalue >= 0 and self.max_step > 0 and self.max_residual > 0,
-                   "sigma, min_eigenvalue >= 0 and max_step, max_residual > 0 expected"),
-                  (self.candidates in ("corner", "grid"), f"candidates={self.candidates!r}; expected 'corner' or "
-                   "'grid'"),
-                  (self.backward_init in ("network", "forward"),
-                   f"backward_init={self.backward_init!r}; expected 'network' or 'forward'")]
+                   "sigma, min_eigenvalue >= 0 and max_step, max_residual > 0 expected")]
         for ok, msg in checks:
             if not ok:
                 raise ValueError(f"flow.refine (pyramid): {msg}")
+        self.candidates = choice(CandidatePick, self.candidates, "flow.refine.pyramid.candidates")
+        self.backward_init = choice(BackwardInit, self.backward_init, "flow.refine.pyramid.backward_init")
         self.iterations = [int(i) for i in its]
         self.backward_iterations = [int(i) for i in b_its]
 
 
 # ---------------------------------------------------------------------------------------------------- images
-def _grey(images: torch.Tensor, sigma: float) -> torch.Tensor:
-    x = images.to(torch.float32)
-    if x.shape[1] == 3:
-        x = 0.299 * x[:, :1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:]
-    if sigma > 0:
-        r = max(1, int(round(3 * sigma)))
-        k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32, device=x.device) / sigma) ** 2)
-        k = k / k.sum()
-        x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
-        x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
-    return x
-
-
-def _gradient(x: torch.Tensor) -> torch.Tensor:
-    """Central differences (d/du, d/dv) of (N,1,H,W), replicated borders -> (N,2,H,W)."""
-    p = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    return torch.cat([0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]), 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])], 1)
-
-
-def _box(x: torch.Tensor, window: int) -> torch.Tensor:
-    """Mean over ``window`` x ``window`` neighbourhoods (replicated border) by running sums along each axis."""
-    r = window // 2
-    x = F.pad(x, (r + 1, r, r + 1, r), mode="replicate")
-    c = x.cumsum(-1)
-    x = c[..., window:] - c[..., :-window]
-    c = x.cumsum(-2)
-    return (c[..., window:, :] - c[..., :-window, :]) / (window * window)
-
-
 def build_pyramid(images: torch.Tensor, levels: int, sigma: float = 1.0) -> list[torch.Tensor]:
     """Grey image and gradients of each level, finest first: ``levels`` tensors (N,3,H_l,W_l) (grey, d/du, d/dv);
     level l+1 is the 2x2 block mean of level l (see the module docstring for the coordinates)."""
     KORNIA_CHECK_SHAPE(images, ["N", "C", "H", "W"])
-    g = _grey(images, sigma)
+    g = smooth(to_grey(images), sigma)
     out = []
     for lev in range(levels):
         if lev > 0:
             KORNIA_CHECK(min(g.shape[-2:]) >= 4, f"build_pyramid: level {lev} of a {tuple(images.shape[-2:])} image "
                                                  "is smaller than 4 pixels; use fewer levels")
             g = F.avg_pool2d(g, 2, ceil_mode=True)
-        out.append(torch.cat([g, _gradient(g)], 1))
+        out.append(torch.cat([g, gradient(g)], 1))
     return out
 
 
@@ -167,12 +156,12 @@ def select_candidates(level0: torch.Tensor, cfg: PyramidRefinementConfig) -> tup
     N, _, H, W = level0.shape
     gx, gy = level0[:, 1:2], level0[:, 2:3]
     w = int(cfg.window)
-    sxx, sxy, syy = _box(torch.cat([gx * gx, gx * gy, gy * gy], 1), w).split(1, 1)
+    sxx, sxy, syy = box_mean(torch.cat([gx * gx, gx * gy, gy * gy], 1), w).split(1, 1)
     score = 0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy * sxy)  # (N,1,H,W)
     r = w // 2 + 1  # keep patches off the border
     score[..., :r, :], score[..., H - r:, :], score[..., :, :r], score[..., :, W - r:] = -1, -1, -1, -1
     c = int(cfg.cell)
-    if cfg.candidates == "corner":  # each cell's best pixel
+    if cfg.candidates == CandidatePick.corner:  # each cell's best pixel
         best, where = F.max_pool2d(score, c, c, ceil_mode=True, return_indices=True)  # (N,1,h,w) per cell
     else:  # each cell's centre pixel
         vv, uu = torch.meshgrid(torch.arange(c // 2, H, c, device=score.device),
@@ -331,7 +320,7 @@ def _refine(pyramid: list[torch.Tensor], src: torch.Tensor, dst: torch.Tensor, f
     u0 = torch.gather(fwd, 2, flat.unsqueeze(1).expand(-1, 2, -1)).transpose(1, 2)
     u, ok_f = lucas_kanade(pyramid, src, dst, pts, u0, mask, cfg)
     y = pts + u
-    bwd0 = -u if cfg.backward_init == "forward" else _sample_flow(flow_bwd.to(torch.float32), y)
+    bwd0 = -u if cfg.backward_init == BackwardInit.forward else _sample_flow(flow_bwd.to(torch.float32), y)
     v, ok_b = lucas_kanade(pyramid, dst, src, y, bwd0, ok_f, cfg, cfg.backward_iterations)
     ok = ok_f & ok_b
     out_f = fwd.clone()

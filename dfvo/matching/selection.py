@@ -29,13 +29,62 @@ valid pixel. A failed frame keeps whatever was selected (for diagnostics) but ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from enum import StrEnum
 from functools import lru_cache
 
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-METHODS = ("local_best_k", "best_n", "uniform")
+from dfvo.validation import check, choice, choices
+
+__all__ = ["SelectionMethod", "SelectionConfig", "Correspondences", "select_correspondences"]
+
+
+class SelectionMethod(StrEnum):
+    """Correspondence selection method (see the module docstring)."""
+
+    local_best_k = "local_best_k"
+    best_n = "best_n"
+    uniform = "uniform"
+
+
+@dataclass
+class SelectionConfig:
+    """Forward-backward consistency and correspondence selection (``tracker.correspondence`` of
+    :class:`dfvo.tracking.config.TrackerConfig`; the defaults of :func:`select_correspondences`).
+
+    Attributes:
+        method: see :class:`SelectionMethod`.
+        num_correspondences: correspondences kept per frame pair.
+        grid: regions (rows, cols) of ``local_best_k``.
+        max_inconsistency: forward-backward inconsistency (pixels) a correspondence may have.
+        min_valid_fraction: selection fails (constant motion) below this fraction of consistent pixels.
+        min_region_fraction: ``local_best_k`` regions with fewer consistent pixels are skipped.
+        crop_top: fraction of image rows at the top not used.
+    """
+
+    method: SelectionMethod = SelectionMethod.local_best_k
+    num_correspondences: int = 2000
+    grid: list[int] = field(default_factory=lambda: [10, 10])
+    max_inconsistency: float = 0.1
+    min_valid_fraction: float = 0.1
+    min_region_fraction: float = 0.1
+    crop_top: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.method = choice(SelectionMethod, self.method, "tracker.correspondence.method")
+        check(len(self.grid) == 2 and all(int(g) > 0 for g in self.grid),
+               f"tracker.correspondence.grid={list(self.grid)}; expected [rows, cols] of positive integers")
+        self.grid = [int(g) for g in self.grid]
+        check(int(self.num_correspondences) > 0, f"tracker.correspondence.num_correspondences="
+                                                 f"{self.num_correspondences}; expected a positive integer")
+        check(self.max_inconsistency > 0, f"tracker.correspondence.max_inconsistency={self.max_inconsistency}; "
+                                           "expected > 0")
+        check(0.0 <= self.crop_top < 1.0, f"tracker.correspondence.crop_top={self.crop_top}; expected [0, 1)")
+
+
+_DEFAULTS = SelectionConfig()
 
 
 @dataclass
@@ -96,7 +145,8 @@ def _region_index(height: int, width: int, top: int, grid: tuple[int, int]) -> t
 
 
 def _check_args(method: str, num: int, grid: tuple[int, int], crop_top: float, height: int) -> int:
-    KORNIA_CHECK(method in METHODS, f"select_correspondences: method must be one of {METHODS}, got {method!r}")
+    KORNIA_CHECK(method in choices(SelectionMethod),
+                 f"select_correspondences: method must be one of {choices(SelectionMethod)}, got {method!r}")
     KORNIA_CHECK(num > 0, f"select_correspondences: num must be positive, got {num}")
     KORNIA_CHECK(len(grid) == 2 and grid[0] > 0 and grid[1] > 0,
                  f"select_correspondences: grid must be two positive ints (rows, cols), got {grid}")
@@ -135,13 +185,13 @@ def _uniform_grid(height: int, width: int, top: int, num: int, device: torch.dev
 def select_correspondences(
     flow_fwd: torch.Tensor,
     inconsistency: torch.Tensor,
-    method: str = "local_best_k",
-    num: int = 2000,
-    grid: tuple[int, int] = (10, 10),
-    max_inconsistency: float = 0.1,
-    min_valid_fraction: float = 0.1,
-    min_region_fraction: float = 0.1,
-    crop_top: float = 0.0,
+    method: SelectionMethod | str = _DEFAULTS.method,
+    num: int = _DEFAULTS.num_correspondences,
+    grid: tuple[int, int] = tuple(_DEFAULTS.grid),
+    max_inconsistency: float = _DEFAULTS.max_inconsistency,
+    min_valid_fraction: float = _DEFAULTS.min_valid_fraction,
+    min_region_fraction: float = _DEFAULTS.min_region_fraction,
+    crop_top: float = _DEFAULTS.crop_top,
     generator: torch.Generator | None = None,
 ) -> Correspondences:
     """Select up to ``num`` correspondences per frame pair from a forward flow.
@@ -150,6 +200,7 @@ def select_correspondences(
         flow_fwd: (B,2,H,W) flow i->j in pixels on image i.
         inconsistency: (B,1,H,W) forward-backward inconsistency in pixels (``+inf`` = unusable).
         method: ``"local_best_k"``, ``"best_n"`` or ``"uniform"`` (see the module docstring).
+        The defaults are :class:`SelectionConfig`'s (``num`` is its ``num_correspondences``).
         num: N, the number of correspondences (the padded output size).
         grid: (rows, cols) of regions for local best-K and for the region-coverage failure test.
         max_inconsistency: validity threshold in pixels for local best-K (strict ``<``).

@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from torch import nn
 
+from dfvo.geometry.camera import resize_flow
 from dfvo.matching.flow_warp import warp_by_flow
 from dfvo.models.correlation import correlation
 
@@ -85,16 +86,6 @@ def _flow_head(cin: int, width: int, cout: int = 2) -> nn.Sequential:
     nn.init.zeros_(head[-1].weight)
     nn.init.zeros_(head[-1].bias)
     return head
-
-
-def _upsample_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """Bilinear resize of a flow field with its vectors rescaled to the new pixel units."""
-    h, w = flow.shape[-2:]
-    if (h, w) == tuple(size):
-        return flow
-    up = F.interpolate(flow, size=size, mode="bilinear", align_corners=False)
-    scale = torch.tensor([size[1] / w, size[0] / h], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
-    return up * scale
 
 
 class FeaturePyramid(nn.Module):
@@ -200,7 +191,7 @@ class FlowNet(nn.Module):
         for lev, block in zip(self.inferred_levels, self.cascade):
             f1, f2 = feats1[lev - 1], feats2[lev - 1]
             size = f1.shape[-2:]
-            flow = f1.new_zeros(f1.shape[0], 2, *size) if flow is None else _upsample_flow(flow, size)
+            flow = f1.new_zeros(f1.shape[0], 2, *size) if flow is None else resize_flow(flow, size)
             i1 = F.interpolate(img1, size=size, mode="area")
             i2 = F.interpolate(img2, size=size, mode="area")
             flow = block(f1, f2, i1, i2, flow)
@@ -232,7 +223,7 @@ class FlowNet(nn.Module):
         flows = self._infer(feats1, feats2, i1, i2)
         if not all_scales:
             flows = flows[:1]
-        return [_upsample_flow(f, (h, w)) for f in flows]
+        return [resize_flow(f, (h, w)) for f in flows]
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor,
                 all_scales: bool = False) -> torch.Tensor | list[torch.Tensor]:

@@ -11,7 +11,7 @@ from enum import StrEnum
 
 from dfvo.matching.flow_refinement import FlowRefinementConfig
 
-__all__ = ["FlowSourceKind", "DepthSourceKind", "FlowSourceConfig", "DepthSourceConfig"]
+__all__ = ["FlowSourceKind", "DepthSourceKind", "DisPreset", "FlowSourceConfig", "DepthSourceConfig"]
 
 
 class FlowSourceKind(StrEnum):
@@ -33,6 +33,14 @@ class DepthSourceKind(StrEnum):
     oracle = "oracle"
 
 
+class DisPreset(StrEnum):
+    """OpenCV DIS presets offered by ``flow.preset`` (``flow=dis``)."""
+
+    ultrafast = "ultrafast"
+    fast = "fast"
+    medium = "medium"
+
+
 @dataclass
 class FlowSourceConfig:
     """Where forward and backward flow come from.
@@ -51,7 +59,7 @@ class FlowSourceConfig:
     checkpoint: str = "checkpoints/flow.safetensors"
     variant: str | None = None
     input_size: list[int] | None = None
-    preset: str = "medium"
+    preset: DisPreset = DisPreset.medium
     refine: FlowRefinementConfig = field(default_factory=FlowRefinementConfig)
 
 

@@ -19,9 +19,12 @@ import numpy as np
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
+from dfvo.sources.config import DisPreset, FlowSourceConfig
+from dfvo.validation import choice, choices
+
 __all__ = ["DISFlow", "PRESETS", "MISSING_OPENCV"]
 
-PRESETS = ("ultrafast", "fast", "medium")
+PRESETS = tuple(choices(DisPreset))
 MISSING_OPENCV = ('flow=dis needs OpenCV: pip install "dfvo[classical]" (or pip install -e ".[classical]" from a '
                   'checkout)')
 
@@ -58,9 +61,8 @@ class DISFlow:
 
     name = "dis"
 
-    def __init__(self, preset: str = "medium", device: str = "cpu") -> None:
-        if preset not in PRESETS:
-            raise ValueError(f"flow.preset={preset!r}; expected one of {PRESETS}")
+    def __init__(self, preset: DisPreset | str = FlowSourceConfig.preset, device: str = "cpu") -> None:
+        preset = choice(DisPreset, preset, "flow.preset")
         cv2 = _import_cv2()
         code = getattr(cv2, f"DISOPTICAL_FLOW_PRESET_{preset.upper()}")
         self.preset = preset

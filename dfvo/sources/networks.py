@@ -23,9 +23,11 @@ import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
+from dfvo.geometry.camera import resize_flow
 from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
+from dfvo.sources.config import DepthSourceConfig
 
 __all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
 
@@ -52,16 +54,6 @@ def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     if tuple(images.shape[-2:]) == size:
         return images
     return F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
-
-
-def _resize_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """Flow (B,2,h,w) in pixels of its own size → (B,2,H,W) in pixels of ``size``."""
-    h, w = flow.shape[-2:]
-    if (h, w) == tuple(size):
-        return flow
-    out = F.interpolate(flow, size=size, mode="bilinear", align_corners=False)
-    scale = torch.tensor([size[1] / w, size[0] / h], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
-    return out * scale
 
 
 class NetworkFlow:
@@ -113,7 +105,7 @@ class NetworkFlow:
         size = tuple(images_prev.shape[-2:])
         with torch.no_grad():
             fwd, bwd = self.model.forward_backward(*self.network_inputs(images_prev, images_cur))
-            return _resize_flow(fwd, size), _resize_flow(bwd, size)
+            return resize_flow(fwd, size), resize_flow(bwd, size)
 
 
 def blend_flipped_inverse_depth(inv_depth: torch.Tensor, inv_depth_of_mirror: torch.Tensor,
@@ -154,9 +146,10 @@ class NetworkDepth:
 
     name = "network"
 
-    def __init__(self, checkpoint: str | Path, depth_scale: float = 1.0, min_depth: float = 0.1,
-                 max_depth: float = 100.0, device: str = "cpu", input_size: Any = None,
-                 flip_average: bool = False) -> None:
+    def __init__(self, checkpoint: str | Path, depth_scale: float = DepthSourceConfig.depth_scale,
+                 min_depth: float = DepthSourceConfig.min_depth, max_depth: float = DepthSourceConfig.max_depth,
+                 device: str = "cpu", input_size: Any = None,
+                 flip_average: bool = DepthSourceConfig.flip_average) -> None:
         if depth_scale <= 0:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)

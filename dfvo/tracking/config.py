@@ -1,19 +1,30 @@
 """Tracker configuration: one typed node (``tracker`` in ``infer.py``'s config) with one section per stage.
 
-This dataclass is the single home of every tracker default; the YAML files of the config groups ``tracker``,
+This dataclass holds every tracker default once; the YAML files of the config groups ``tracker``,
 ``correspondence``, ``scale`` and ``model_selection`` (``dfvo/conf/infer/``) only select a choice (e.g.
 ``method: best_n``) and the command line overrides single values (``tracker.scale.depth_views=1``). The defaults are
 what ``infer.py`` runs; where they differ from the paper / the authors' code, the field says so and
 ``experiment=paper`` restores the paper's configuration. Defaults read from the official implementation are in
 ``../shared/reference/official-defaults.md``.
+
+Three sections live beside the function they configure, in a lower layer, so that function takes its defaults from
+them (``select_correspondences`` cannot import the tracker): :class:`SelectionConfig` in
+:mod:`dfvo.matching.selection`, :class:`EssentialConfig` in :mod:`dfvo.geometry.two_view`, :class:`PnPConfig` in
+:mod:`dfvo.geometry.pnp`; they are re-exported here. ``tests/test_config_defaults.py`` checks that every public
+function whose parameters mirror a config field has the field's default (or none).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum, StrEnum
+from enum import StrEnum
 
-__all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "SelectionConfig",
+from dfvo.geometry.pnp import PnPConfig
+from dfvo.geometry.two_view import EssentialConfig
+from dfvo.matching.selection import SelectionConfig, SelectionMethod
+from dfvo.validation import check, choice
+
+__all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "RoadPoints", "SelectionConfig",
            "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "ScaleFilterConfig",
            "GateConfig", "PnPConfig", "TrackerConfig"]
 
@@ -27,14 +38,6 @@ class TrackerMode(StrEnum):
     pnp = "pnp"
 
 
-class SelectionMethod(StrEnum):
-    """Correspondence selection (:mod:`dfvo.matching.selection`)."""
-
-    local_best_k = "local_best_k"
-    best_n = "best_n"
-    uniform = "uniform"
-
-
 class ModelSelectionMethod(StrEnum):
     """E-vs-PnP decision: ``gric`` (E vs H) or ``flow`` (median flow magnitude)."""
 
@@ -42,81 +45,18 @@ class ModelSelectionMethod(StrEnum):
     flow = "flow"
 
 
+class RoadPoints(StrEnum):
+    """The points the road plane is fitted to (``tracker.road_plane.points``; see :class:`RoadPlaneConfig`)."""
+
+    triangulated = "triangulated"
+    depth = "depth"
+
+
 class ScaleMethod(StrEnum):
     """Scale recovery: ``simple`` (1-D RANSAC on depth ratios) or ``iterative`` (paper Algorithm 2)."""
 
     simple = "simple"
     iterative = "iterative"
-
-
-def _check(condition: bool, message: str) -> None:
-    if not condition:
-        raise ValueError(message)
-
-
-def _choice(enum: type[Enum], value: object, setting: str) -> Enum:
-    """``value`` as a member of ``enum``; a ValueError naming ``setting`` and the allowed values otherwise."""
-    try:
-        return enum(value.value if isinstance(value, Enum) else value)
-    except ValueError:
-        raise ValueError(f"{setting}={value!r}; expected one of {[m.value for m in enum]}") from None
-
-
-@dataclass
-class SelectionConfig:
-    """Forward-backward consistency and correspondence selection (``tracker.correspondence``).
-
-    Attributes:
-        method: see :class:`SelectionMethod`.
-        num_correspondences: correspondences kept per frame pair.
-        grid: regions (rows, cols) of ``local_best_k``.
-        max_inconsistency: forward-backward inconsistency (pixels) a correspondence may have.
-        min_valid_fraction: selection fails (constant motion) below this fraction of consistent pixels.
-        min_region_fraction: ``local_best_k`` regions with fewer consistent pixels are skipped.
-        crop_top: fraction of image rows at the top not used.
-    """
-
-    method: SelectionMethod = SelectionMethod.local_best_k
-    num_correspondences: int = 2000
-    grid: list[int] = field(default_factory=lambda: [10, 10])
-    max_inconsistency: float = 0.1
-    min_valid_fraction: float = 0.1
-    min_region_fraction: float = 0.1
-    crop_top: float = 0.0
-
-    def __post_init__(self) -> None:
-        self.method = _choice(SelectionMethod, self.method, "tracker.correspondence.method")
-        _check(len(self.grid) == 2 and all(int(g) > 0 for g in self.grid),
-               f"tracker.correspondence.grid={list(self.grid)}; expected [rows, cols] of positive integers")
-        self.grid = [int(g) for g in self.grid]
-        _check(int(self.num_correspondences) > 0, f"tracker.correspondence.num_correspondences="
-                                                 f"{self.num_correspondences}; expected a positive integer")
-        _check(self.max_inconsistency > 0, f"tracker.correspondence.max_inconsistency={self.max_inconsistency}; "
-                                           "expected > 0")
-        _check(0.0 <= self.crop_top < 1.0, f"tracker.correspondence.crop_top={self.crop_top}; expected [0, 1)")
-
-
-@dataclass
-class EssentialConfig:
-    """Essential-matrix RANSAC and its validity rules (``tracker.essential``).
-
-    Attributes:
-        threshold_px: RANSAC inlier threshold in pixels (converted to normalised coordinates).
-        iterations: minimal samples per RANSAC repeat; repeats: repeats, the most inliers wins.
-        min_correspondences: with this many or fewer valid correspondences E is invalid.
-        min_cheirality_fraction: E is invalid when fewer rows pass cheirality.
-    """
-
-    threshold_px: float = 0.2
-    iterations: int = 20
-    repeats: int = 5
-    min_correspondences: int = 10
-    min_cheirality_fraction: float = 0.1
-
-    def __post_init__(self) -> None:
-        _check(self.threshold_px > 0, f"tracker.essential.threshold_px={self.threshold_px}; expected > 0")
-        _check(int(self.iterations) > 0 and int(self.repeats) > 0,
-               f"tracker.essential: iterations={self.iterations}, repeats={self.repeats}; expected positive integers")
 
 
 @dataclass
@@ -137,8 +77,8 @@ class ModelSelectionConfig:
     flow_magnitude_threshold: float = 5.0
 
     def __post_init__(self) -> None:
-        self.method = _choice(ModelSelectionMethod, self.method, "tracker.model_selection.method")
-        _check(self.h_threshold_px > 0 and self.gric_sigma > 0 and int(self.h_iterations) > 0,
+        self.method = choice(ModelSelectionMethod, self.method, "tracker.model_selection.method")
+        check(self.h_threshold_px > 0 and self.gric_sigma > 0 and int(self.h_iterations) > 0,
                f"tracker.model_selection: h_threshold_px={self.h_threshold_px}, gric_sigma={self.gric_sigma}, "
                f"h_iterations={self.h_iterations}; expected positive values")
 
@@ -162,16 +102,13 @@ class ScaleConfig:
             (:mod:`dfvo.tracking.ground_plane`, settings in ``tracker.road_plane``) then gives a second scale
             observation, fused with the CNN's by their variances (:mod:`dfvo.tracking.scale_fusion`). null: off (the
             paper). ``infer.py`` fills it from ``data.camera_height`` when null (KITTI's dataset configs set 1.65;
-            ``data.camera_height=null`` turns it off there): KITTI 06 RPE 0.071 -> 0.038 m with ``temporal``
-            (docs/scale.md).
+            ``data.camera_height=null`` turns it off there). Its effect is measured in docs/scale.md.
         camera_height_from_data: false: ``data.camera_height`` is not used (``experiment=paper`` sets it; an explicit
             ``camera_height`` still is).
         temporal: fuse the scale over time (:mod:`dfvo.tracking.scale_filter`, settings in ``tracker.scale_filter``):
             the three-frame relative scale predicts each pair's length from the previous one, the absolute
             observations correct it; a frame whose scale observations fail keeps the prediction. false: per-frame
-            scale (the paper). Default true: RPE KITTI 06 0.086 -> 0.071 m (0.038 m with the camera height),
-            held-out synthetic straight 0.138 -> 0.080 m, synthetic drive 0.197 -> 0.190 m
-            (``benchmarks/scale_study.py``, docs/scale.md).
+            scale (the paper). Default true; its effect is measured in docs/scale.md.
     """
 
     method: ScaleMethod = ScaleMethod.simple
@@ -191,17 +128,17 @@ class ScaleConfig:
     temporal: bool = True
 
     def __post_init__(self) -> None:
-        self.method = _choice(ScaleMethod, self.method, "tracker.scale.method")
-        _check(self.camera_height is None or self.camera_height > 0,
+        self.method = choice(ScaleMethod, self.method, "tracker.scale.method")
+        check(self.camera_height is None or self.camera_height > 0,
                f"tracker.scale.camera_height={self.camera_height}; expected a height in metres > 0, or null (off)")
-        _check(self.depth_views in (1, 2), f"tracker.scale.depth_views={self.depth_views}; expected 1 or 2")
-        _check(self.views_max_ratio > 1.0, f"tracker.scale.views_max_ratio={self.views_max_ratio}; expected > 1")
-        _check(self.max_depth > 0 and self.inlier_threshold > 0,
+        check(self.depth_views in (1, 2), f"tracker.scale.depth_views={self.depth_views}; expected 1 or 2")
+        check(self.views_max_ratio > 1.0, f"tracker.scale.views_max_ratio={self.views_max_ratio}; expected > 1")
+        check(self.max_depth > 0 and self.inlier_threshold > 0,
                f"tracker.scale: max_depth={self.max_depth}, inlier_threshold={self.inlier_threshold}; expected > 0")
-        _check(0.0 <= self.depth_crop_top < 1.0, f"tracker.scale.depth_crop_top={self.depth_crop_top}; "
+        check(0.0 <= self.depth_crop_top < 1.0, f"tracker.scale.depth_crop_top={self.depth_crop_top}; "
                                                  "expected [0, 1)")
         for name in ("ransac_trials", "ransac_samples", "iterative_max_iters"):
-            _check(int(getattr(self, name)) > 0, f"tracker.scale.{name}={getattr(self, name)}; expected a positive "
+            check(int(getattr(self, name)) > 0, f"tracker.scale.{name}={getattr(self, name)}; expected a positive "
                                                  "integer")
 
 
@@ -215,10 +152,8 @@ class RoadPlaneConfig:
             ``camera_height / fitted height`` observes the translation's length (needs good flow on the road).
             ``depth`` (default): the plane of the depth network's own points of the earlier frame (a pixel grid
             every ``grid_step`` px in the band); ``fitted height / camera_height`` observes the network's scale factor
-            near the road, which the filter divides out of the CNN-depth scale. Measured with the shipped networks
-            (``benchmarks/scale_study.py``): the shipped flow is too poor on the road for ``triangulated`` (per-frame
-            log std 0.29 on KITTI 06, a plane on 37 of 50 frames; RPE 0.050 m with the temporal filter vs 0.038 m with
-            ``depth``).
+            near the road, which the filter divides out of the CNN-depth scale. ``depth`` is the default because the
+            shipped flow is too poor on the road for ``triangulated`` (measurements: docs/scale.md).
         min_row_fraction, max_row_fraction: candidate points lie in this band of image rows (fractions of the height;
             the lower image, above the bottom rows whose points leave the next image).
         max_col_offset_fraction: ... and within this fraction of the image width of its centre column.
@@ -229,11 +164,11 @@ class RoadPlaneConfig:
         max_tilt_deg: largest angle between the plane's normal and the camera's vertical (y) axis.
         min_parallax_deg: points whose two rays meet at a smaller angle are not used (poor triangulation).
         min_inliers: fewer inliers: no camera-height observation this frame.
-        trials: RANSAC hypotheses. log_std: per-frame std of the observation's log; measured: ``depth`` 0.046 (KITTI
-            06), 0.015 (synthetic highway), 0.13 (synthetic drive); ``triangulated`` 0.30 (KITTI 06).
+        trials: RANSAC hypotheses. log_std: per-frame std of the observation's log, the weight the filter gives it
+            (the values measured per dataset: docs/scale.md).
     """
 
-    points: str = "depth"
+    points: RoadPoints = RoadPoints.depth
     min_row_fraction: float = 0.7
     max_row_fraction: float = 0.87
     max_col_offset_fraction: float = 0.2
@@ -247,16 +182,15 @@ class RoadPlaneConfig:
     log_std: float = 0.05
 
     def __post_init__(self) -> None:
-        _check(self.points in ("triangulated", "depth"), f"tracker.road_plane.points={self.points!r}; expected "
-                                                         "'triangulated' or 'depth'")
-        _check(self.min_row_fraction < self.max_row_fraction <= 1.0 and int(self.grid_step) > 0,
+        self.points = choice(RoadPoints, self.points, "tracker.road_plane.points")
+        check(self.min_row_fraction < self.max_row_fraction <= 1.0 and int(self.grid_step) > 0,
                f"tracker.road_plane: max_row_fraction={self.max_row_fraction}, grid_step={self.grid_step}; expected "
                "min_row_fraction < max_row_fraction <= 1 and a positive step")
-        _check(0.0 <= self.min_row_fraction < 1.0 and 0.0 < self.max_col_offset_fraction <= 0.5,
+        check(0.0 <= self.min_row_fraction < 1.0 and 0.0 < self.max_col_offset_fraction <= 0.5,
                f"tracker.road_plane: min_row_fraction={self.min_row_fraction} (expected [0, 1)), "
                f"max_col_offset_fraction={self.max_col_offset_fraction} (expected (0, 0.5])")
-        _check(0.0 < self.quantile <= 1.0, f"tracker.road_plane.quantile={self.quantile}; expected (0, 1]")
-        _check(self.threshold > 0 and 0 < self.max_tilt_deg < 90 and self.log_std > 0 and int(self.trials) > 0,
+        check(0.0 < self.quantile <= 1.0, f"tracker.road_plane.quantile={self.quantile}; expected (0, 1]")
+        check(self.threshold > 0 and 0 < self.max_tilt_deg < 90 and self.log_std > 0 and int(self.trials) > 0,
                f"tracker.road_plane: threshold={self.threshold}, max_tilt_deg={self.max_tilt_deg}, "
                f"log_std={self.log_std}, trials={self.trials}; expected positive values (tilt < 90)")
 
@@ -266,11 +200,9 @@ class ScaleFilterConfig:
     """Scale fusion and the temporal filter over log scale (``tracker.scale_filter``).
 
     Attributes:
-        cnn_log_std: per-frame std of log(CNN-depth scale / true length). Measured with the shipped networks
-            (``benchmarks/scale_study.py``): 0.067 on KITTI 06, 0.15 on a held-out synthetic straight road (seed
-            1000), 0.11 on the synthetic drive's E frames; its errors are correlated from frame to frame, so 0.1
-            (not the KITTI value 0.07) lets the three-frame relative scale carry more: RPE KITTI 06 0.040 -> 0.038
-            m, synthetic straight 0.097 -> 0.080 m, synthetic drive unchanged (0.195 m).
+        cnn_log_std: per-frame std of log(CNN-depth scale / true length), the weight the filter gives the CNN-depth
+            scale. Its errors are correlated from frame to frame, so the default is larger than the per-frame std
+            measured on KITTI and lets the three-frame relative scale carry more (measurements: docs/scale.md).
         motion_log_std: per-frame random walk of log scale when no relative scale is observed.
         temporal_log_std: floor of the three-frame relative scale's standard error; relative_process_std: added
             per frame to it (speed changes the points cannot see).
@@ -301,9 +233,9 @@ class ScaleFilterConfig:
 
     def __post_init__(self) -> None:
         for name in ("cnn_log_std", "motion_log_std", "temporal_log_std", "gate_sigma", "max_inconsistency"):
-            _check(getattr(self, name) > 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected > 0")
+            check(getattr(self, name) > 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected > 0")
         for name in ("relative_process_std", "bias_prior_log_std", "bias_log_std", "min_parallax_deg"):
-            _check(getattr(self, name) >= 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected >= 0")
+            check(getattr(self, name) >= 0, f"tracker.scale_filter.{name}={getattr(self, name)}; expected >= 0")
 
 
 @dataclass
@@ -317,18 +249,15 @@ class GateConfig:
             standstill). stop_length, stop_flow_px: a translation this short is a stop, never "too short", when the
             image agrees (90 % of the selected correspondences move at most ``stop_flow_px`` pixels beyond the
             camera's rotation: no parallax).
-        length_window: the expected length is the median of this many last tracked lengths (not constant motion).
-            Measured: 3 instead of 1 keeps one wrong PnP length from becoming the reference (the truck of the
-            synthetic drive at 96x320: constant motion 0.14-0.30 m wrong instead of 0.79-0.95 m; 100-frame drive
-            RPE 0.195 -> 0.190 m; KITTI 06 unchanged).
+        length_window: the expected length is the median of this many last tracked lengths (not constant motion);
+            more than one keeps a single wrong PnP length from becoming the reference (docs/scale.md).
         max_direction_change_deg: a translation whose direction differs more from the previous frame's (both longer
             than ``stop_length``) is rejected.
         min_inliers, min_inlier_fraction: a model with fewer inliers than ``max(min_inliers,
             min_inlier_fraction * rows)`` is rejected.
         max_consecutive: after this many frames in a row that a gate sent to constant motion the next result is
-            accepted (a wrong expectation cannot hold forever). Measured: 3 lets a truck that fills the view for 12
-            frames of the synthetic drive (seed 0, frames 81-92) take over after 3 frames (8 frames > 1 m wrong);
-            10 (1 s at 10 Hz) keeps constant motion through it (none).
+            accepted (a wrong expectation cannot hold forever); the default, 1 s at 10 Hz, rides out a truck that
+            fills the view for longer than a few frames (docs/scale.md).
     """
 
     enabled: bool = True
@@ -343,32 +272,12 @@ class GateConfig:
     max_consecutive: int = 10
 
     def __post_init__(self) -> None:
-        _check(self.max_length_ratio > 1.0, f"tracker.gate.max_length_ratio={self.max_length_ratio}; expected > 1")
-        _check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
+        check(self.max_length_ratio > 1.0, f"tracker.gate.max_length_ratio={self.max_length_ratio}; expected > 1")
+        check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
                f"tracker.gate: length_window={self.length_window} (expected >= 1), max_consecutive="
                f"{self.max_consecutive} (expected >= 0)")
-        _check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
+        check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
                                                       f"{self.min_inlier_fraction}; expected [0, 1)")
-
-
-@dataclass
-class PnPConfig:
-    """PnP-RANSAC with Levenberg-Marquardt refinement (``tracker.pnp``).
-
-    Attributes:
-        threshold_px: inlier reprojection threshold (pixels). iterations: minimal samples per repeat.
-        repeats: RANSAC repeats. min_points: PnP fails with fewer usable 3-D/2-D rows.
-    """
-
-    threshold_px: float = 1.0
-    iterations: int = 100
-    repeats: int = 5
-    min_points: int = 10
-
-    def __post_init__(self) -> None:
-        _check(self.threshold_px > 0 and int(self.iterations) > 0 and int(self.repeats) > 0,
-               f"tracker.pnp: threshold_px={self.threshold_px}, iterations={self.iterations}, repeats={self.repeats}; "
-               "expected positive values")
 
 
 @dataclass
@@ -394,4 +303,4 @@ class TrackerConfig:
     pnp: PnPConfig = field(default_factory=PnPConfig)
 
     def __post_init__(self) -> None:
-        self.mode = _choice(TrackerMode, self.mode, "tracker.mode")
+        self.mode = choice(TrackerMode, self.mode, "tracker.mode")

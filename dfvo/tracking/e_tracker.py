@@ -45,6 +45,13 @@ class ETrackerResult:
     valid: torch.Tensor
     reasons: list[str | None]
 
+    def pair(self, b: int) -> ETrackerResult:
+        """Pair ``b`` of the batch as a result of batch size 1 (views of the tensors, no copy)."""
+        sl = slice(b, b + 1)
+        return ETrackerResult(self.R[sl], self.t[sl], self.E[sl], self.inliers[sl], self.num_inliers[sl],
+                              self.cheirality_fraction[sl], self.gric_e[sl], self.gric_h[sl], self.valid[sl],
+                              [self.reasons[b]])
+
 
 def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
                     cfg: TrackerConfig, generators: list[torch.Generator] | None) -> ETrackerResult:

@@ -20,6 +20,7 @@ import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.ransac import sample_rows
+from dfvo.tracking.config import RoadPlaneConfig
 
 MAD_TO_STD = 1.4826
 
@@ -44,7 +45,7 @@ class RoadPlane:
 
 
 def road_candidates(pts: torch.Tensor, height: int, width: int, min_row_fraction: float,
-                    max_col_offset_fraction: float, max_row_fraction: float = 1.0) -> torch.Tensor:
+                    max_col_offset_fraction: float, max_row_fraction: float) -> torch.Tensor:
     """(B,N) bool: pixels ``pts`` (B,N,2) in the lower image (rows from ``min_row_fraction`` to ``max_row_fraction``
     of ``height - 1``) and within ``max_col_offset_fraction * width`` of the image's centre column (the road ahead,
     not the kerbs)."""
@@ -93,9 +94,11 @@ def _least_squares(X: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torc
     return n, (n * mean).sum(-1)
 
 
-def fit_road_plane(X: torch.Tensor, rows: torch.Tensor, threshold: float = 0.05, max_tilt_deg: float = 15.0,
-                   min_inliers: int = 20, trials: int = 100, refinements: int = 3, min_threshold: float = 0.002,
-                   quantile: float = 0.3, generators: list[torch.Generator] | None = None) -> RoadPlane:
+def fit_road_plane(X: torch.Tensor, rows: torch.Tensor, threshold: float = RoadPlaneConfig.threshold,
+                   max_tilt_deg: float = RoadPlaneConfig.max_tilt_deg, min_inliers: int = RoadPlaneConfig.min_inliers,
+                   trials: int = RoadPlaneConfig.trials, refinements: int = 3, min_threshold: float = 0.002,
+                   quantile: float = RoadPlaneConfig.quantile,
+                   generators: list[torch.Generator] | None = None) -> RoadPlane:
     """Robust road plane per frame: random 3-point planes whose normal lies within ``max_tilt_deg`` of the camera's
     down axis (0,1,0) and which lie below the camera (``d > 0``); the one whose ``quantile``-th smallest distance
     (relative to its ``d``, since the points' unit is unknown) is least wins (least-quantile, like LMedS), its

@@ -31,18 +31,17 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.geometry.se3 import pose_from_rt
+from dfvo.geometry.se3 import pose_from_rt, se3_inverse
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.selection import select_correspondences
 from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
-from dfvo.tracking.e_tracker import essential_scale, track_essential
+from dfvo.tracking.e_tracker import ETrackerResult, essential_scale, track_essential
 from dfvo.tracking.gates import check_direction, check_length, check_support, image_parallax_px
 from dfvo.tracking.pnp_tracker import track_pnp
 from dfvo.tracking.scale import iterative_scale, sample_depth
@@ -73,12 +72,48 @@ class FrameResult:
     matches: FrameMatches | None = None
 
 
-def _inv(T: torch.Tensor) -> torch.Tensor:
-    R, t = T[..., :3, :3], T[..., :3, 3:]
-    out = torch.eye(4, dtype=T.dtype, device=T.device).expand_as(T).clone()
-    out[..., :3, :3] = R.transpose(-1, -2)
-    out[..., :3, 3:] = -R.transpose(-1, -2) @ t
-    return out
+@dataclass
+class FrameState:
+    """One frame's working state inside :class:`VisualOdometry`: what its batch computed for it (batch size 1
+    slices of pair b) and what the frame decides while it is finished. Passed explicitly to the private steps, so
+    no per-frame value lives on the tracker between calls.
+
+    Attributes:
+        pts_prev, pts_cur: (1,N,2) float64 pixels of the padded correspondences; mask: (1,N) bool real rows.
+        selection_failed, selection_reason: the correspondence selection's verdict on this pair.
+        depth: (1,1,H,W) metres of the earlier frame; depth_next: (1,1,H,W) of the later frame (two-view scale) or
+            None. K: (1,3,3) float64 intrinsics. flow: (1,2,H,W) forward flow, inconsistency: (1,1,H,W) its
+            forward-backward inconsistency in pixels.
+        generator: this frame's seeded generator (``cfg.seed + frame index``).
+        essential: the E-tracker's result for this pair (None with ``tracker=pnp``); scale, scale_ok: its simple
+            scale from CNN depth and whether it succeeded (None with ``tracker=pnp``).
+        diagnostics: the frame's record, filled as it is decided.
+        estimate: the fused scale the E pose used (None: no fusion, or not an E pose).
+        gate_overruled: a gate's rejection was overruled (after ``gate.max_consecutive`` gated frames in a row).
+    """
+
+    pts_prev: torch.Tensor
+    pts_cur: torch.Tensor
+    mask: torch.Tensor
+    selection_failed: bool
+    selection_reason: str | None
+    depth: torch.Tensor
+    depth_next: torch.Tensor | None
+    K: torch.Tensor
+    flow: torch.Tensor
+    inconsistency: torch.Tensor
+    generator: torch.Generator
+    essential: ETrackerResult | None
+    scale: float | None
+    scale_ok: bool | None
+    diagnostics: FrameDiagnostics
+    estimate: ScaleEstimate | None = None
+    gate_overruled: bool = False
+
+    @property
+    def rows(self) -> torch.Tensor:
+        """(N,) bool: the real correspondence rows."""
+        return self.mask[0]
 
 
 class VisualOdometry:
@@ -166,121 +201,123 @@ class VisualOdometry:
         results = []
         for b in range(B):
             tb = time.perf_counter()
-            res = self._finish_frame(b, corr, pi, pj, mask, depth, depth_next, Kd, e_res, scale, scale_ok, gens[b],
-                                     flow_fwd, incon)
+            sl = slice(b, b + 1)
+            state = FrameState(
+                pts_prev=pi[sl], pts_cur=pj[sl], mask=mask[sl], selection_failed=bool(corr.failed[b]),
+                selection_reason=corr.reasons[b], depth=depth[sl],
+                depth_next=None if depth_next is None else depth_next[sl], K=Kd[sl], flow=flow_fwd[sl],
+                inconsistency=incon[sl], generator=gens[b], essential=None if e_res is None else e_res.pair(b),
+                scale=None if scale is None else float(scale[b]),
+                scale_ok=None if scale_ok is None else bool(scale_ok[b]),
+                diagnostics=FrameDiagnostics(frame=self.frame + 1, num_correspondences=int(mask[b].sum()),
+                                             selection_failed=bool(corr.failed[b])))
+            res = self._finish_frame(state)
             res.diagnostics.time_selection = (t1 - t0) / B
             res.diagnostics.time_e_tracker = (t2 - t1) / B
             res.diagnostics.time_sequential = time.perf_counter() - tb
             results.append(res)
         return results
 
-    def _finish_frame(self, b: int, corr: Any, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor,
-                      depth: torch.Tensor, depth_next: torch.Tensor | None, K: torch.Tensor, e_res: Any,
-                      scale: torch.Tensor | None, scale_ok: torch.Tensor | None, gen: torch.Generator,
-                      flow: torch.Tensor, incon: torch.Tensor) -> FrameResult:
+    def _finish_frame(self, st: FrameState) -> FrameResult:
+        """Decide the frame's pose (E, PnP or constant motion), advance the trajectory and the scale fusion."""
         cfg = self.cfg
-        sl = slice(b, b + 1)
-        self._estimate: ScaleEstimate | None = None  # the fused scale an E pose used
-        self._gate_overruled = False
-        diag = FrameDiagnostics(frame=self.frame + 1, num_correspondences=int(mask[b].sum()),
-                                selection_failed=bool(corr.failed[b]))
+        diag, e_res = st.diagnostics, st.essential
         if e_res is not None:
-            gric_e, gric_h = float(e_res.gric_e[b]), float(e_res.gric_h[b])
+            gric_e, gric_h = float(e_res.gric_e[0]), float(e_res.gric_h[0])
             diag.gric_e = gric_e if gric_e == gric_e else None  # NaN: GRIC not computed
             diag.gric_h = gric_h if gric_h == gric_h else None
-            diag.cheirality_fraction = float(e_res.cheirality_fraction[b])
+            diag.cheirality_fraction = float(e_res.cheirality_fraction[0])
         T_cur_prev: torch.Tensor | None = None
-        if bool(corr.failed[b]):
-            diag.fallback_reason = f"selection failed: {corr.reasons[b]}"
+        if st.selection_failed:
+            diag.fallback_reason = f"selection failed: {st.selection_reason}"
         elif cfg.mode == TrackerMode.pnp:
-            T_cur_prev = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
+            T_cur_prev = self._pnp(st)
         else:
-            reason = e_res.reasons[b]
+            reason = e_res.reasons[0]
             if reason is None:
-                T_cur_prev, reason = self._essential_pose(b, pi, pj, mask, depth, depth_next, K, e_res, scale,
-                                                          scale_ok, gen, diag, flow, incon)
+                T_cur_prev, reason = self._essential_pose(st)
             if T_cur_prev is None:
                 diag.add_reason(reason)
                 if cfg.mode == TrackerMode.hybrid:
-                    T_cur_prev = self._pnp(sl, pi, pj, mask, depth, K, gen, diag)
+                    T_cur_prev = self._pnp(st)
         if T_cur_prev is None:
             T_prev_cur = self.last_motion.clone()
             diag.tracker = TrackerUsed.constant_motion
         else:
-            T_prev_cur = _inv(T_cur_prev)
+            T_prev_cur = se3_inverse(T_cur_prev)
         self.T_w = self.T_w @ T_prev_cur
         self.last_motion = T_prev_cur
         self.last_scale = float(T_prev_cur[:3, 3].norm())
         self.frame += 1
-        rows = mask[b]
+        rows = st.rows
         used_e = e_res is not None and diag.tracker == TrackerUsed.essential
-        self.fusion.end_frame(T_cur_prev, T_prev_cur, diag.tracker, self._estimate, pi[b], pj[b],
-                              rows & e_res.inliers[b] if used_e else rows, K[b])
+        self.fusion.end_frame(T_cur_prev, T_prev_cur, diag.tracker, st.estimate, st.pts_prev[0], st.pts_cur[0],
+                              rows & e_res.inliers[0] if used_e else rows, st.K[0])
         gated_out = diag.gate_rejected and diag.tracker == TrackerUsed.constant_motion
         self.fusion.rejections = self.fusion.rejections + 1 if gated_out else 0
-        if self._gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself
+        if st.gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself
             self.fusion.forget_motion()
-        inliers = e_res.inliers[b][rows] if used_e else None
-        matches = FrameMatches(pi[b][rows], pj[b][rows], inliers)
+        inliers = e_res.inliers[0][rows] if used_e else None
+        matches = FrameMatches(st.pts_prev[0][rows], st.pts_cur[0][rows], inliers)
         return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches)
 
-    def _essential_pose(self, b: int, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
-                        depth_next: torch.Tensor | None, K: torch.Tensor, e_res: Any, scale: torch.Tensor,
-                        scale_ok: torch.Tensor, gen: torch.Generator, diag: FrameDiagnostics, flow: torch.Tensor,
-                        incon: torch.Tensor) -> tuple[torch.Tensor | None, str | None]:
+    def _essential_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
+        """The E-tracker's pose ``T_cur_prev`` (4,4) with its scale (iterative scale, fusion, gates), or None and
+        the reason it was not usable."""
         cfg = self.cfg
-        sl = slice(b, b + 1)
-        R, t = e_res.R[sl], e_res.t[sl]
-        s, ok = float(scale[b]), bool(scale_ok[b])
-        diag.num_inliers = int(e_res.num_inliers[b])
+        e_res, diag, gen = st.essential, st.diagnostics, st.generator
+        pi, pj, mask, depth, K = st.pts_prev, st.pts_cur, st.mask, st.depth, st.K
+        R, t = e_res.R, e_res.t
+        s, ok = st.scale, st.scale_ok
+        diag.num_inliers = int(e_res.num_inliers[0])
         if cfg.scale.method == ScaleMethod.iterative:
-            z_cnn, z_ok = sample_depth(depth[sl], pi[sl], cfg.scale.max_depth, cfg.scale.depth_crop_top)
+            z_cnn, z_ok = sample_depth(depth, pi, cfg.scale.max_depth, cfg.scale.depth_crop_top)
 
             def estimate(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
                 if int(rows.sum()) <= cfg.essential.min_correspondences:
                     return R, t, torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.bool)
-                r = find_essential_ransac(pi[sl], pj[sl], rows, K[sl], threshold_px=cfg.essential.threshold_px,
+                r = find_essential_ransac(pi, pj, rows, K, threshold_px=cfg.essential.threshold_px,
                                           iterations=cfg.essential.iterations, repeats=cfg.essential.repeats,
                                           generators=[gen])
-                R2, t2, _ = decompose_essential(r.model, K[sl], pi[sl], pj[sl], rows)
-                s2, ok2 = essential_scale(R2, t2, pi[sl], pj[sl], rows, depth[sl], K[sl], cfg, [gen],
-                                          None if depth_next is None else depth_next[sl])
+                R2, t2, _ = decompose_essential(r.model, K, pi, pj, rows)
+                s2, ok2 = essential_scale(R2, t2, pi, pj, rows, depth, K, cfg, [gen], st.depth_next)
                 return R2, t2, s2, ok2 & r.success
 
             R0, t0, s0 = R, t, 0.0
             if self.last_scale > 0:
                 # start from the motion model (previous R and t direction and scale): its rigid flow re-selects
                 # the static scene even when E itself locked onto a large moving object
-                T_prev = _inv(self.last_motion)[None]
+                T_prev = se3_inverse(self.last_motion)[None]
                 R0, t0, s0 = T_prev[:, :3, :3], T_prev[:, :3, 3] / self.last_scale, self.last_scale
             s_it, R_it, t_it, ok_it, iters = iterative_scale(
-                pi[sl], pj[sl], mask[sl], z_cnn, z_ok, K[sl], R0, t0, s0, estimate,
+                pi, pj, mask, z_cnn, z_ok, K, R0, t0, s0, estimate,
                 max_iters=cfg.scale.iterative_max_iters, tol=cfg.scale.iterative_tol,
                 flow_threshold_px=cfg.scale.iterative_flow_threshold_px)
             diag.scale_iterations = iters
             if ok_it:
                 R, t, s, ok = R_it, t_it, s_it, True
+        rows = st.rows
         direction = -(R[0].transpose(0, 1) @ t[0])  # T_prev_cur's translation direction (E is never a stop: judged)
-        support = self._gate(check_support("E", diag.num_inliers, int(mask[b].sum()), cfg.gate)
-                             or check_direction("E", direction, self.fusion.expected_direction, 1.0, cfg.gate), diag)
+        support = self._gate(st, check_support("E", diag.num_inliers, int(rows.sum()), cfg.gate)
+                             or check_direction("E", direction, self.fusion.expected_direction, 1.0, cfg.gate))
         if support is not None:
             return None, support
         failed = f"scale recovery failed (<= {cfg.scale.min_points} usable depth points)"
         diag.scale_cnn = s if ok else None
         if self.fusion.uses_fusion:
-            est = self.fusion.estimate(R, t, s if ok else None, pi[sl], pj[sl], (mask[b] & e_res.inliers[b])[None],
-                                       K[sl], flow[sl], incon[sl], depth[sl], gen, diag)
+            est = self.fusion.estimate(R, t, s if ok else None, pi, pj, (rows & e_res.inliers[0])[None],
+                                       K, st.flow, st.inconsistency, depth, gen, diag)
             if est.scale is None:
                 return None, failed
             if est.source == "prediction":
                 diag.add_reason("scale: no observation; the temporal filter's prediction is used")
-            s, self._estimate = est.scale, est
+            s, st.estimate = est.scale, est
         elif not ok:
             return None, failed
-        too_far = self._gate(check_length("E", s, self.fusion.expected_length, cfg.gate,
-                                                 image_parallax_px(pi[b][mask[b]], pj[b][mask[b]], R[0], K[b])), diag)
+        too_far = self._gate(st, check_length("E", s, self.fusion.expected_length, cfg.gate,
+                                              image_parallax_px(pi[0][rows], pj[0][rows], R[0], K[0])))
         if too_far is not None:
-            predicted = None if self._estimate is None else self._estimate.predicted
+            predicted = None if st.estimate is None else st.estimate.predicted
             if predicted is None or not cfg.scale.temporal:
                 return None, too_far
             diag.add_reason(f"{too_far}; the temporal filter's prediction is used")
@@ -289,36 +326,37 @@ class VisualOdometry:
         diag.tracker, diag.scale = TrackerUsed.essential, s
         return pose_from_rt(R, s * t)[0], None
 
-    def _gate(self, reason: str | None, diag: FrameDiagnostics) -> str | None:
+    def _gate(self, st: FrameState, reason: str | None) -> str | None:
         """A gate's verdict on this frame: None (accepted) or the reason; after ``gate.max_consecutive`` frames in a
         row that fell back to constant motion by a gate, the result is accepted (and the reason noted), and the next
         frame is judged by no expectation (the overruled result may be wrong itself)."""
         if reason is None:
             return None
         if self.fusion.rejections >= self.cfg.gate.max_consecutive:
-            diag.add_reason(f"{reason}: accepted after {self.fusion.rejections} gated frames in a row")
-            self._gate_overruled = True
+            st.diagnostics.add_reason(f"{reason}: accepted after {self.fusion.rejections} gated frames in a row")
+            st.gate_overruled = True
             return None
-        diag.gate_rejected = True
+        st.diagnostics.gate_rejected = True
         return reason
 
-    def _pnp(self, sl: slice, pi: torch.Tensor, pj: torch.Tensor, mask: torch.Tensor, depth: torch.Tensor,
-             K: torch.Tensor, gen: torch.Generator, diag: FrameDiagnostics) -> torch.Tensor | None:
-        T, ok, nin = track_pnp(pi[sl], pj[sl], mask[sl], depth[sl], K[sl], self.cfg, [gen])
+    def _pnp(self, st: FrameState) -> torch.Tensor | None:
+        """The PnP-tracker's pose ``T_cur_prev`` (4,4) after its gates, or None (the reason noted)."""
+        cfg, diag = self.cfg, st.diagnostics
+        pi, pj, mask, depth, K = st.pts_prev, st.pts_cur, st.mask, st.depth, st.K
+        T, ok, nin = track_pnp(pi, pj, mask, depth, K, cfg, [st.generator])
         diag.pnp_success, diag.num_inliers = bool(ok[0]), int(nin[0])
         if not bool(ok[0]):
             diag.add_reason("PnP failed")
             return None
         length = float(T[0, :3, 3].norm())
-        if self.cfg.gate.enabled:
-            _, usable = sample_depth(depth[sl], pi[sl], self.cfg.scale.max_depth, self.cfg.scale.depth_crop_top)
+        if cfg.gate.enabled:
+            _, usable = sample_depth(depth, pi, cfg.scale.max_depth, cfg.scale.depth_crop_top)
             direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])
-            reason = self._gate(check_support("PnP", int(nin[0]), int((usable & mask[sl]).sum()), self.cfg.gate)
-                                or check_length("PnP", length, self.fusion.expected_length, self.cfg.gate,
-                                             image_parallax_px(pi[sl][mask[sl]], pj[sl][mask[sl]], T[0, :3, :3],
-                                                               K[sl]))
+            reason = self._gate(st, check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
+                                or check_length("PnP", length, self.fusion.expected_length, cfg.gate,
+                                                image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K))
                                 or check_direction("PnP", direction, self.fusion.expected_direction, length,
-                                                   self.cfg.gate), diag)
+                                                   cfg.gate))
             if reason is not None:
                 diag.add_reason(reason)
                 return None

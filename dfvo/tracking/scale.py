@@ -16,12 +16,13 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.ransac import frame_rand
 from dfvo.geometry.two_view import normalise_points, ray_depths
+from dfvo.tracking.config import ScaleConfig
 
 __all__ = ["sample_depth", "triangulated_depth", "triangulated_depths", "simple_scale", "iterative_scale"]
 
 
-def sample_depth(depth: torch.Tensor, pts: torch.Tensor, max_depth: float = 50.0,
-                 crop_top: float = 0.3) -> tuple[torch.Tensor, torch.Tensor]:
+def sample_depth(depth: torch.Tensor, pts: torch.Tensor, max_depth: float = ScaleConfig.max_depth,
+                 crop_top: float = ScaleConfig.depth_crop_top) -> tuple[torch.Tensor, torch.Tensor]:
     """Depth (B,1,H,W) at (B,N,2) pixels (nearest pixel) -> values (B,N) float64 and usable (B,N) bool."""
     KORNIA_CHECK_SHAPE(depth, ["B", "1", "H", "W"])
     KORNIA_CHECK_SHAPE(pts, ["B", "N", "2"])
@@ -55,8 +56,9 @@ def triangulated_depth(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_i:
     return z_i, front
 
 
-def simple_scale(z_cnn: torch.Tensor, z_tri: torch.Tensor, mask: torch.Tensor, trials: int = 100,
-                 samples: int = 3, threshold: float = 0.1, min_points: int = 10,
+def simple_scale(z_cnn: torch.Tensor, z_tri: torch.Tensor, mask: torch.Tensor,
+                 trials: int = ScaleConfig.ransac_trials, samples: int = ScaleConfig.ransac_samples,
+                 threshold: float = ScaleConfig.inlier_threshold, min_points: int = ScaleConfig.min_points,
                  generators: list[torch.Generator] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One scale per frame by 1-D RANSAC on ratios ``z_cnn / z_tri``.
 
@@ -100,8 +102,9 @@ def iterative_scale(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
                     z_valid: torch.Tensor, K: torch.Tensor, R: torch.Tensor, t: torch.Tensor, init_scale: float,
                     estimate: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor,
                                                              torch.Tensor]],
-                    max_iters: int = 5, tol: float = 1e-3,
-                    flow_threshold_px: float = 5.0) -> tuple[float, torch.Tensor, torch.Tensor, bool, int]:
+                    max_iters: int = ScaleConfig.iterative_max_iters, tol: float = ScaleConfig.iterative_tol,
+                    flow_threshold_px: float = ScaleConfig.iterative_flow_threshold_px,
+                    ) -> tuple[float, torch.Tensor, torch.Tensor, bool, int]:
     """Paper Algorithm 2 for one frame (B=1): alternate rigid-flow re-selection and pose + scale estimation.
 
     From the current ``[R | s t]`` and the CNN depth, the rigid flow of each selected pixel is compared with

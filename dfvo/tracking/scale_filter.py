@@ -23,6 +23,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+from dfvo.tracking.config import ScaleFilterConfig
+
 __all__ = ["ScaleEstimate", "FilterState", "ScaleFilter"]
 
 UNKNOWN_VAR = 1e6  # variance of log scale before any observation
@@ -78,8 +80,9 @@ class ScaleFilter:
 
     def __init__(self, temporal: bool, estimate_bias: bool, cnn_log_std: float, height_log_std: float,
                  motion_log_std: float, temporal_log_std: float, relative_process_std: float,
-                 bias_prior_log_std: float, bias_log_std: float, gate_sigma: float, min_length: float = 0.1,
-                 max_rejections: int = 3) -> None:
+                 bias_prior_log_std: float, bias_log_std: float, gate_sigma: float,
+                 min_length: float = ScaleFilterConfig.min_length,
+                 max_rejections: int = ScaleFilterConfig.max_rejections) -> None:
         self.temporal, self.estimate_bias = bool(temporal), bool(estimate_bias)
         self.cnn_var, self.height_var = cnn_log_std ** 2, height_log_std ** 2
         self.motion_var, self.temporal_var = motion_log_std ** 2, temporal_log_std ** 2

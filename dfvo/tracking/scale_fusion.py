@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from dfvo.geometry.two_view import normalise_points
-from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.config import RoadPoints, TrackerConfig
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.ground_plane import fit_road_plane, parallax_deg, road_candidates, road_grid
 from dfvo.tracking.scale import triangulated_depths
@@ -133,7 +133,7 @@ class ScaleFusion:
             diag.scale_temporal = temporal_scale
         height, road_bias = None, None
         self._height_unit = None
-        if cfg.scale.camera_height is not None and cfg.road_plane.points == "depth":
+        if cfg.scale.camera_height is not None and cfg.road_plane.points == RoadPoints.depth:
             obs = depth_road_height(depth, K, cfg, generator)
             road_bias, diag.plane_inliers = obs.scale, obs.inliers
             if obs.height_unit is not None:  # the network's road height, metres

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.two_view import normalise_points
+from dfvo.tracking.config import ScaleFilterConfig
 from dfvo.tracking.ground_plane import parallax_deg
 from dfvo.tracking.scale import triangulated_depths
 
@@ -43,7 +44,8 @@ def _rays(pts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 
 def middle_depths(T_cur_prev: torch.Tensor, K: torch.Tensor, pts_prev: torch.Tensor, pts_cur: torch.Tensor,
-                  rows: torch.Tensor, min_parallax_deg: float = 0.5) -> MiddleDepths | None:
+                  rows: torch.Tensor,
+                  min_parallax_deg: float = ScaleFilterConfig.min_parallax_deg) -> MiddleDepths | None:
     """The metric depths in the later image of the rows ``rows`` (N,) of a tracked pair, triangulated with its
     metric ``T_cur_prev`` (4,4); rows in front of both cameras with at least ``min_parallax_deg`` of parallax.
     None when the pose has (almost) no translation.
@@ -86,8 +88,9 @@ class RelativeScale:
 
 
 def relative_scale(prev: MiddleDepths | None, flow: torch.Tensor, inconsistency: torch.Tensor, K: torch.Tensor,
-                   R: torch.Tensor, t: torch.Tensor, max_inconsistency: float = 0.5, min_parallax_deg: float = 0.5,
-                   min_points: int = 20) -> RelativeScale:
+                   R: torch.Tensor, t: torch.Tensor, max_inconsistency: float = ScaleFilterConfig.max_inconsistency,
+                   min_parallax_deg: float = ScaleFilterConfig.min_parallax_deg,
+                   min_points: int = ScaleFilterConfig.min_points) -> RelativeScale:
     """Metric length of the unit translation ``t`` of pair (j, k) from the depths ``prev`` of pair (i, j).
 
     The points ``prev.pts`` of image j are carried to image k by ``flow`` (j->k, sampled bilinearly); those whose

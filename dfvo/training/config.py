@@ -2,7 +2,7 @@
 
 The dataclasses hold every default once. ``model/*.yaml`` name their schema (``schema/depth`` or ``schema/flow``, whose
 ``_target_`` is the LightningModule) and hold only what differs from it; ``trainer/*.yaml`` only what differs from
-:class:`TrainerConfig`; ``data/*.yaml`` only what differs from their kind's schema (:data:`DATA_SCHEMAS`). Hydra
+:class:`TrainerConfig`; ``data/*.yaml`` only what differs from their kind's schema (:data:`TRAIN_DATA_SCHEMAS`). Hydra
 checks overrides against the schema, so a typo (``model.w_smoth=1``) or a wrong type fails before anything runs;
 the ``__post_init__`` checks run when a node becomes its dataclass (:func:`typed`), before any data or network
 is built. ``python train.py --cfg job`` prints the composed configuration with every default.
@@ -22,33 +22,33 @@ from enum import StrEnum
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf import MISSING, DictConfig
 
 from dfvo.training.augment import DepthAugmentConfig
 from dfvo.training.data_config import (
-    DATA_SCHEMAS,
+    TRAIN_DATA_SCHEMAS,
     CropMode,
-    DataConfig,
-    FlowPairDataConfig,
-    FlyingChairsDataConfig,
-    FlyingThingsDataConfig,
-    KittiFlowDataConfig,
-    KittiOdomDataConfig,
-    KittiRawDataConfig,
-    KittiRawSyntheticDataConfig,
-    SintelDataConfig,
-    SyntheticDataConfig,
-    WorldsDataConfig,
+    FlowPairTrainDataConfig,
+    FlyingChairsTrainDataConfig,
+    FlyingThingsTrainDataConfig,
+    KittiFlowTrainDataConfig,
+    KittiOdomTrainDataConfig,
+    KittiRawSyntheticTrainDataConfig,
+    KittiRawTrainDataConfig,
+    SintelTrainDataConfig,
+    SyntheticTrainDataConfig,
+    TrainDataConfig,
+    WorldsTrainDataConfig,
     data_root,
-    positive,
 )
+from dfvo.validation import choice, choices, positive, typed
 
-__all__ = ["MonitorMode", "FlowMode", "CropMode", "DepthModelConfig", "FlowLossConfig", "FlowModelConfig",
-           "MODEL_SCHEMAS", "DataConfig", "WorldsDataConfig", "SyntheticDataConfig", "KittiRawDataConfig",
-           "KittiOdomDataConfig", "KittiRawSyntheticDataConfig", "FlowPairDataConfig", "FlyingChairsDataConfig",
-           "FlyingThingsDataConfig", "SintelDataConfig", "KittiFlowDataConfig", "DATA_SCHEMAS", "PRECISIONS",
-           "TrainerConfig", "TrainConfig", "register_configs", "typed", "model_config", "data_config", "data_root"]
+__all__ = ["MonitorMode", "FlowMode", "CropMode", "Precision", "MatmulPrecision", "DepthModelConfig", "FlowLossConfig",
+           "FlowModelConfig", "MODEL_SCHEMAS", "TrainDataConfig", "WorldsTrainDataConfig", "SyntheticTrainDataConfig",
+           "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig", "KittiRawSyntheticTrainDataConfig",
+           "FlowPairTrainDataConfig", "FlyingChairsTrainDataConfig", "FlyingThingsTrainDataConfig",
+           "SintelTrainDataConfig", "KittiFlowTrainDataConfig", "TRAIN_DATA_SCHEMAS", "PRECISIONS", "TrainerConfig",
+           "TrainConfig", "register_configs", "typed", "model_config", "data_config", "data_root"]
 
 
 class MonitorMode(StrEnum):
@@ -190,7 +190,26 @@ MODEL_SCHEMAS: dict[str, type] = {"depth": DepthModelConfig, "flow": FlowModelCo
 
 
 # ---------------------------------------------------------------------------------------------------- trainer
-PRECISIONS = ("32-true", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true")
+class Precision(StrEnum):
+    """Lightning's ``precision`` values offered by ``trainer.precision`` (the field holds the value: ``32-true``...)."""
+
+    fp32 = "32-true"
+    bf16_mixed = "bf16-mixed"
+    fp16_mixed = "16-mixed"
+    bf16 = "bf16-true"
+    fp16 = "16-true"
+    fp64 = "64-true"
+
+
+PRECISIONS = tuple(choices(Precision))
+
+
+class MatmulPrecision(StrEnum):
+    """``torch.set_float32_matmul_precision`` values (``trainer.float32_matmul_precision``)."""
+
+    highest = "highest"
+    high = "high"
+    medium = "medium"
 
 
 @dataclass
@@ -243,11 +262,9 @@ class TrainerConfig:
     logger: bool = True
 
     def __post_init__(self) -> None:
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"trainer.precision={self.precision!r}; expected one of {PRECISIONS}")
-        if self.float32_matmul_precision not in (None, "highest", "high", "medium"):
-            raise ValueError(f"trainer.float32_matmul_precision={self.float32_matmul_precision!r}; expected null, "
-                             "'highest', 'high' or 'medium'")
+        choice(Precision, self.precision, "trainer.precision")
+        if self.float32_matmul_precision is not None:
+            choice(MatmulPrecision, self.float32_matmul_precision, "trainer.float32_matmul_precision (or null)")
         if self.max_steps < -1 or self.max_steps == 0:
             raise ValueError(f"trainer.max_steps={self.max_steps}; expected -1 (no limit) or a positive count")
 
@@ -258,7 +275,7 @@ class TrainConfig:
     """Root of ``train.py``'s configuration.
 
     Attributes:
-        model: depth or flow schema (``model=NAME``). data: one of :data:`DATA_SCHEMAS` (``data=KIND``).
+        model: depth or flow schema (``model=NAME``). data: one of :data:`TRAIN_DATA_SCHEMAS` (``data=KIND``).
         trainer: :class:`TrainerConfig` (``trainer=default|smoke|gpu|ddp``).
         name: the run folder ``runs_dir/name`` (default ``<model>_<data>``).
         runs_dir: where runs are written (relative to the working folder).
@@ -269,7 +286,7 @@ class TrainConfig:
     model: Any = MISSING
     data: Any = MISSING
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
-    name: str = "${model.name}_${data.name}"
+    name: str = "${model.name}_${data.kind}"
     runs_dir: str = "runs"
     seed: int = 0
     ckpt_path: str | None = None
@@ -283,43 +300,12 @@ def register_configs() -> None:
     cs.store(name="train_schema", node=TrainConfig)
     for task, schema in MODEL_SCHEMAS.items():
         cs.store(group="model/schema", name=task, node=schema)
-    for kind, schema in DATA_SCHEMAS.items():
+    for kind, schema in TRAIN_DATA_SCHEMAS.items():
         cs.store(group="data/train_schema", name=kind, node=schema)
     cs.store(group="trainer/schema", name="trainer", node=TrainerConfig)
 
 
 # ------------------------------------------------------------------------------------------------ typed access
-def _one_line(err: Exception, where: str) -> str:
-    key = getattr(err, "full_key", None)
-    msg = str(getattr(err, "msg", None) or err).splitlines()[0].strip()
-    if key:
-        return f"{where}.{key}: {msg}" if where else f"{key}: {msg}"
-    return f"{where}: {msg}" if where and not msg.startswith(f"{where}.") else msg
-
-
-def typed(node: DictConfig | dict | Any, schema: type | None = None, where: str = "") -> Any:
-    """A config node as its dataclass instance, validated by the dataclass' ``__post_init__``.
-
-    Args:
-        node: a node composed by Hydra (typed by its schema) or a plain dict / untyped node (e.g. the config stored in
-            a checkpoint), which is merged into ``schema`` first.
-        schema: the dataclass of the node (None: the node's own type).
-        where: the node's key for messages (``"model"``).
-
-    Raises:
-        ValueError: one line naming the setting (unknown key, wrong type, missing value, failed check).
-    """
-    try:
-        if not isinstance(node, DictConfig):
-            node = OmegaConf.create(node)
-        if schema is not None and OmegaConf.get_type(node) is not schema:
-            node = OmegaConf.merge(OmegaConf.structured(schema), node)
-        return OmegaConf.to_object(node)
-    except OmegaConfBaseException as err:
-        cause = err.__cause__ if isinstance(err.__cause__, ValueError) else None
-        raise ValueError(str(cause) if cause else _one_line(err, where)) from err
-
-
 def model_config(cfg: DictConfig | dict) -> DepthModelConfig | FlowModelConfig:
     """The typed ``model`` node of a training config (schema chosen by ``model.task``)."""
     node = cfg["model"]
@@ -329,13 +315,13 @@ def model_config(cfg: DictConfig | dict) -> DepthModelConfig | FlowModelConfig:
     return typed(node, MODEL_SCHEMAS[task], "model")
 
 
-def data_config(cfg: DictConfig | dict) -> DataConfig:
-    """The typed ``data`` node of a training config (schema chosen by ``data.name``)."""
+def data_config(cfg: DictConfig | dict) -> TrainDataConfig:
+    """The typed ``data`` node of a training config (schema chosen by ``data.kind``)."""
     node = cfg["data"]
-    name = node.get("name") if hasattr(node, "get") else None
-    if name not in DATA_SCHEMAS:
-        raise ValueError(f"data.name={name!r}; expected one of {sorted(DATA_SCHEMAS)} (choose data=KIND)")
-    return typed(node, DATA_SCHEMAS[name], "data")
+    kind = node.get("kind") if hasattr(node, "get") else None
+    if kind not in TRAIN_DATA_SCHEMAS:
+        raise ValueError(f"data.kind={kind!r}; expected one of {sorted(TRAIN_DATA_SCHEMAS)} (choose data=KIND)")
+    return typed(node, TRAIN_DATA_SCHEMAS[kind], "data")
 
 
 register_configs()

@@ -2,8 +2,12 @@
 
 Each ``data/KIND.yaml`` is ``defaults: [schema/KIND@_here_, _self_]`` plus what differs; the schemas here hold every
 field and default (registered by :func:`dfvo.training.config.register_configs`). Dataset roots are never derived from
-the repository layout: ``data.root=`` or the kind's environment variable (:attr:`DataConfig.ROOT_ENV`, e.g.
+the repository layout: ``data.root=`` or the kind's environment variable (:attr:`TrainDataConfig.ROOT_ENV`, e.g.
 ``DFVO_KITTI_RAW_ROOT``), resolved by :func:`data_root` when the data is built.
+
+The inference data schemas (:mod:`dfvo.inference.config`: the one sequence ``infer.py`` tracks) are the other family
+of ``data`` nodes; both are chosen by ``data=KIND`` and discriminated by the field ``kind``, and the training classes
+are named ``*TrainDataConfig`` (registered under ``data/train_schema``) so the two never share a name.
 """
 
 from __future__ import annotations
@@ -15,10 +19,12 @@ from typing import ClassVar
 
 from omegaconf import MISSING
 
-__all__ = ["CropMode", "DataConfig", "WorldsDataConfig", "SyntheticDataConfig", "KittiRawDataConfig",
-           "KittiOdomDataConfig", "KittiRawSyntheticDataConfig", "FlowPairDataConfig", "FlyingChairsDataConfig",
-           "FlyingThingsDataConfig", "SintelDataConfig", "KittiFlowDataConfig", "DATA_SCHEMAS", "data_root",
-           "positive"]
+from dfvo.validation import positive
+
+__all__ = ["CropMode", "TrainDataConfig", "WorldsTrainDataConfig", "SyntheticTrainDataConfig",
+           "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig", "KittiRawSyntheticTrainDataConfig",
+           "FlowPairTrainDataConfig", "FlyingChairsTrainDataConfig", "FlyingThingsTrainDataConfig",
+           "SintelTrainDataConfig", "KittiFlowTrainDataConfig", "TRAIN_DATA_SCHEMAS", "data_root"]
 
 
 class CropMode(StrEnum):
@@ -28,19 +34,12 @@ class CropMode(StrEnum):
     center = "center"
 
 
-def positive(where: str, **values: float | None) -> None:
-    """Raise ``where.key=value; expected > 0`` for the first value that is not None and not positive."""
-    for key, value in values.items():
-        if value is not None and not value > 0:
-            raise ValueError(f"{where}.{key}={value}; expected > 0")
-
-
 @dataclass
-class DataConfig:
+class TrainDataConfig:
     """Fields of every training dataset.
 
     Attributes:
-        name: the dataset kind (a key of :data:`DATA_SCHEMAS`; set by its schema).
+        kind: the dataset kind (a key of :data:`TRAIN_DATA_SCHEMAS`; set by its schema).
         height, width: working size the frames are resized to (flow pair datasets: the crop).
         batch_size: samples per batch (per process under DDP; on a GPU raise it, e.g. ``data.batch_size=16``).
         num_workers: DataLoader worker processes. seed: shuffling (and augmentation) seed.
@@ -51,7 +50,7 @@ class DataConfig:
 
     ROOT_ENV: ClassVar[str | None] = None  # environment variable giving the root once for all commands
 
-    name: str = MISSING
+    kind: str = MISSING
     height: int | None = 192
     width: int | None = 640
     batch_size: int = 4
@@ -63,9 +62,9 @@ class DataConfig:
     val_every: int = 1
 
     def __post_init__(self) -> None:
-        expected = next((k for k, v in DATA_SCHEMAS.items() if v is type(self)), None)
-        if expected is not None and self.name != expected:
-            raise ValueError(f"data.name={self.name!r}; the {type(self).__name__} schema is data={expected}")
+        expected = next((k for k, v in TRAIN_DATA_SCHEMAS.items() if v is type(self)), None)
+        if expected is not None and self.kind != expected:
+            raise ValueError(f"data.kind={self.kind!r}; the {type(self).__name__} schema is data={expected}")
         positive("data", height=self.height, width=self.width, batch_size=self.batch_size,
                   val_every=self.val_every, max_train_samples=self.max_train_samples)
         if self.num_workers < 0:
@@ -76,7 +75,7 @@ class DataConfig:
 
 
 @dataclass
-class WorldsDataConfig(DataConfig):
+class WorldsTrainDataConfig(TrainDataConfig):
     """Synthetic training worlds (:mod:`dfvo.synthetic`): ``seeds`` (one world each, below 1000: seeds >= 1000
     are held-out evaluation worlds), ``num_frames`` each, ``scenario`` (names; seed s gets ``scenario[s % len]``),
     ``speed``/``turn_rate`` (null: the scenario's; ``[v]`` or a range ``[lo, hi]`` drawn per world), ``device``
@@ -93,53 +92,53 @@ class WorldsDataConfig(DataConfig):
 
 
 @dataclass
-class SyntheticDataConfig(WorldsDataConfig):
+class SyntheticTrainDataConfig(WorldsTrainDataConfig):
     """``data=synthetic``: the synthetic driving world (exact depth, flow and poses)."""
 
-    name: str = "synthetic"
+    kind: str = "synthetic"
 
 
 @dataclass
-class KittiRawDataConfig(DataConfig):
+class KittiRawTrainDataConfig(TrainDataConfig):
     """``data=kitti_raw``: KITTI raw drives ``ROOT/DATE/DATE_drive_XXXX_sync`` (colour stereo) as snippets
     (i-s, i, i+s) for every s of ``frame_skips``; ``drives`` null: every drive under the root. Validation on the
     synthetic worlds (true depth)."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
-    name: str = "kitti_raw"
+    kind: str = "kitti_raw"
     root: str | None = None
     drives: list[str] | None = None
     frame_skips: list[int] = field(default_factory=lambda: [1])
 
 
 @dataclass
-class KittiOdomDataConfig(DataConfig):
+class KittiOdomTrainDataConfig(TrainDataConfig):
     """``data=kitti_odom``: KITTI odometry ``ROOT/sequences/SEQ`` as snippets (i-s, i, i+s) (+ stereo when the right
     images exist)."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_ODOM_ROOT"
 
-    name: str = "kitti_odom"
+    kind: str = "kitti_odom"
     root: str | None = None
     sequences: list[str] = field(default_factory=lambda: ["06"])
     frame_skips: list[int] = field(default_factory=lambda: [1])
 
 
 @dataclass
-class KittiRawSyntheticDataConfig(WorldsDataConfig):
+class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     """``data=kitti_raw_synthetic``: KITTI raw drives and synthetic worlds in one training set (``frame_skips``
     applies to both)."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
-    name: str = "kitti_raw_synthetic"
+    kind: str = "kitti_raw_synthetic"
     root: str | None = None
     drives: list[str] | None = None
 
 
 @dataclass
-class FlowPairDataConfig(DataConfig):
+class FlowPairTrainDataConfig(TrainDataConfig):
     """Frame pairs with true flow (:mod:`dfvo.data.flow_datasets`): ``height``/``width`` the crop (both null: no
     crop), ``resize`` ``[h, w]`` before cropping (flow vectors scaled; null: native size), ``crop`` for training,
     ``train_split``, ``val_split`` (the dataset's own validation pairs, centre crop; null: the synthetic worlds of
@@ -153,13 +152,13 @@ class FlowPairDataConfig(DataConfig):
 
 
 @dataclass
-class FlyingChairsDataConfig(FlowPairDataConfig):
+class FlyingChairsTrainDataConfig(FlowPairTrainDataConfig):
     """``data=flyingchairs``: ``ROOT/data/NNNNN_img1.ppm, _img2.ppm, _flow.flo`` and ``FlyingChairs_train_val.txt``
     (ROOT = FlyingChairs_release). Forward flow only. FlowNet's 320x448 crops of the 384x512 images."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_FLYINGCHAIRS_ROOT"
 
-    name: str = "flyingchairs"
+    kind: str = "flyingchairs"
     height: int | None = 320
     width: int | None = 448
     val_split: str | None = "val"
@@ -167,14 +166,14 @@ class FlyingChairsDataConfig(FlowPairDataConfig):
 
 
 @dataclass
-class FlyingThingsDataConfig(FlowPairDataConfig):
+class FlyingThingsTrainDataConfig(FlowPairTrainDataConfig):
     """``data=flyingthings``: FlyingThings3D ``frames_cleanpass|finalpass`` and ``optical_flow`` (forward and
     backward flow); ``dstype`` clean | final, ``cameras`` [left] / [right] / both, ``reverse`` also the reversed
     pairs. Crops of the 540x960 frames; TEST pairs as validation."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_FLYINGTHINGS_ROOT"
 
-    name: str = "flyingthings"
+    kind: str = "flyingthings"
     dstype: str = "clean"
     cameras: list[str] = field(default_factory=lambda: ["left"])
     reverse: bool = False
@@ -185,13 +184,13 @@ class FlyingThingsDataConfig(FlowPairDataConfig):
 
 
 @dataclass
-class SintelDataConfig(FlowPairDataConfig):
+class SintelTrainDataConfig(FlowPairTrainDataConfig):
     """``data=sintel``: MPI-Sintel ``training/clean|final/SCENE`` with ``training/flow``; ``scenes`` to train on
     (null: all), ``val_scenes`` with ``val_split: val``. Forward flow only; crops of the 436x1024 frames."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_SINTEL_ROOT"
 
-    name: str = "sintel"
+    kind: str = "sintel"
     dstype: str = "clean"
     scenes: list[str] | None = None
     val_scenes: list[str] | None = None
@@ -200,32 +199,32 @@ class SintelDataConfig(FlowPairDataConfig):
 
 
 @dataclass
-class KittiFlowDataConfig(FlowPairDataConfig):
+class KittiFlowTrainDataConfig(FlowPairTrainDataConfig):
     """``data=kitti_flow``: KITTI flow 2015 / 2012 training pairs (``ROOT`` = ``data_scene_flow/training``), sparse
     true flow (``mask``: occ = all pixels with ground truth, noc = non-occluded), resized to the working size."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_FLOW_ROOT"
 
-    name: str = "kitti_flow"
+    kind: str = "kitti_flow"
     version: int = 2015
     mask: str = "occ"
     resize: list[int] | None = field(default_factory=lambda: [192, 640])
 
 
-DATA_SCHEMAS: dict[str, type[DataConfig]] = {
-    "synthetic": SyntheticDataConfig,
-    "kitti_raw": KittiRawDataConfig,
-    "kitti_odom": KittiOdomDataConfig,
-    "kitti_raw_synthetic": KittiRawSyntheticDataConfig,
-    "flyingchairs": FlyingChairsDataConfig,
-    "flyingthings": FlyingThingsDataConfig,
-    "sintel": SintelDataConfig,
-    "kitti_flow": KittiFlowDataConfig,
+TRAIN_DATA_SCHEMAS: dict[str, type[TrainDataConfig]] = {
+    "synthetic": SyntheticTrainDataConfig,
+    "kitti_raw": KittiRawTrainDataConfig,
+    "kitti_odom": KittiOdomTrainDataConfig,
+    "kitti_raw_synthetic": KittiRawSyntheticTrainDataConfig,
+    "flyingchairs": FlyingChairsTrainDataConfig,
+    "flyingthings": FlyingThingsTrainDataConfig,
+    "sintel": SintelTrainDataConfig,
+    "kitti_flow": KittiFlowTrainDataConfig,
 }
 
 
 
-def data_root(data: DataConfig) -> str:
+def data_root(data: TrainDataConfig) -> str:
     """``data.root``, else the kind's environment variable; one line saying how to set it when neither is set."""
     root = getattr(data, "root", None)
     if root:
@@ -234,5 +233,5 @@ def data_root(data: DataConfig) -> str:
     value = os.environ.get(env, "") if env else ""
     if not value:
         how = f"set the environment variable {env}=ROOT once or pass data.root=ROOT" if env else "pass data.root=ROOT"
-        raise ValueError(f"data={data.name} needs the dataset folder: {how}")
+        raise ValueError(f"data={data.kind} needs the dataset folder: {how}")
     return value

@@ -1,6 +1,6 @@
 """LightningDataModule serving every ``data=KIND`` of ``dfvo/conf/train/data/`` for every task.
 
-Config: ``cfg.data``, typed by its kind's schema (:data:`dfvo.training.config.DATA_SCHEMAS`): video kinds
+Config: ``cfg.data``, typed by its kind's schema (:data:`dfvo.training.config.TRAIN_DATA_SCHEMAS`): video kinds
 (``synthetic``, ``kitti_raw``, ``kitti_odom``, ``kitti_raw_synthetic``) give temporal snippets (i-s, i, i+s) for every
 gap s of ``data.frame_skips`` (depth-pose: the target and its source views; flow: the pairs i-s → i, i → i+s; the
 synthetic flow set gives the pairs (k, k+s) with their true flow); the flow pair kinds (``flyingchairs``,
@@ -34,13 +34,13 @@ from dfvo.data.kitti_odometry import KittiOdometry
 from dfvo.data.kitti_raw import KittiRawSnippets
 from dfvo.synthetic import SyntheticFlowDataset, SyntheticSequenceDataset, check_training_seeds
 from dfvo.training.config import (
-    DataConfig,
     FlowMode,
-    FlowPairDataConfig,
-    KittiOdomDataConfig,
-    KittiRawDataConfig,
-    KittiRawSyntheticDataConfig,
-    WorldsDataConfig,
+    FlowPairTrainDataConfig,
+    KittiOdomTrainDataConfig,
+    KittiRawSyntheticTrainDataConfig,
+    KittiRawTrainDataConfig,
+    TrainDataConfig,
+    WorldsTrainDataConfig,
     data_config,
     data_root,
     model_config,
@@ -75,10 +75,10 @@ class DFVODataModule(L.LightningDataModule):
     def __init__(self, cfg: DictConfig | dict) -> None:
         super().__init__()
         self.model = model_config(cfg)
-        self.data: DataConfig = data_config(cfg)
-        self.name = self.data.name
+        self.data: TrainDataConfig = data_config(cfg)
+        self.name = self.data.kind
         self.task = self.model.task
-        flow_pairs = isinstance(self.data, FlowPairDataConfig)
+        flow_pairs = isinstance(self.data, FlowPairTrainDataConfig)
         if flow_pairs and self.task != "flow":
             raise ValueError(f"data={self.name} holds optical-flow frame pairs only; train it with "
                              f"model=flow_supervised or model=flow_self (model.task=flow), not model.task={self.task}")
@@ -91,7 +91,7 @@ class DFVODataModule(L.LightningDataModule):
                              f"kitti_flow) provide; data={self.name}{why}. Use data=synthetic (or data=flyingchairs "
                              f"...), or model=flow_self for real video (e.g. model=flow_self data={self.name} "
                              "model.init_from=<a flow_supervised weights.safetensors or last.ckpt>)")
-        if isinstance(self.data, WorldsDataConfig):
+        if isinstance(self.data, WorldsTrainDataConfig):
             check_training_seeds(self.data.seeds, "data.seeds")
             if self.data.device != "cpu" and self.data.num_workers > 0:
                 raise ValueError(f"data.device={self.data.device} renders in the main process; set "
@@ -120,8 +120,8 @@ class DFVODataModule(L.LightningDataModule):
         the default worlds (validation stays comparable across training settings)."""
         d = self.data
         cls = SyntheticFlowDataset if self.task == "flow" else SyntheticSequenceDataset
-        world: dict[str, Any] = {"device": d.device} if isinstance(d, WorldsDataConfig) else {}
-        if train and isinstance(d, WorldsDataConfig):
+        world: dict[str, Any] = {"device": d.device} if isinstance(d, WorldsTrainDataConfig) else {}
+        if train and isinstance(d, WorldsTrainDataConfig):
             world["scenario"] = list(d.scenario)
             for key in ("speed", "turn_rate"):
                 value = getattr(d, key)
@@ -132,7 +132,7 @@ class DFVODataModule(L.LightningDataModule):
     def _need_stereo(self) -> bool:
         return self.task == "depth" and bool(getattr(self.model, "stereo", False))
 
-    def _kitti_raw(self, data: KittiRawDataConfig | KittiRawSyntheticDataConfig) -> Dataset:
+    def _kitti_raw(self, data: KittiRawTrainDataConfig | KittiRawSyntheticTrainDataConfig) -> Dataset:
         root = data_root(data)
         drives = list(data.drives) if data.drives else None
         stereo, skips = self._need_stereo(), self.frame_skips
@@ -150,7 +150,7 @@ class DFVODataModule(L.LightningDataModule):
         snippets = SkipSnippets(frames, list(sequences.values()), skips)
         return snippets if stereo else _DropKeys(snippets, ("image_right", "T_right_left"))
 
-    def _kitti_odom(self, data: KittiOdomDataConfig) -> Dataset:
+    def _kitti_odom(self, data: KittiOdomTrainDataConfig) -> Dataset:
         root = data_root(data)
         seqs = [str(s) for s in data.sequences]
         try:
@@ -175,15 +175,15 @@ class DFVODataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         d = self.data
         if self.train_set is None:
-            if isinstance(d, FlowPairDataConfig):
+            if isinstance(d, FlowPairTrainDataConfig):
                 train = self._flow_pairs(d.train_split, train=True)
-            elif isinstance(d, KittiRawSyntheticDataConfig):
+            elif isinstance(d, KittiRawSyntheticTrainDataConfig):
                 train = ConcatDataset([self._kitti_raw(d), self._synthetic(d.seeds, d.num_frames, self.frame_skips)])
-            elif isinstance(d, WorldsDataConfig):
+            elif isinstance(d, WorldsTrainDataConfig):
                 train = self._synthetic(d.seeds, d.num_frames, self.frame_skips)
-            elif isinstance(d, KittiRawDataConfig):
+            elif isinstance(d, KittiRawTrainDataConfig):
                 train = self._kitti_raw(d)
-            elif isinstance(d, KittiOdomDataConfig):
+            elif isinstance(d, KittiOdomTrainDataConfig):
                 train = self._kitti_odom(d)
             else:
                 raise ValueError(f"data={self.name}: no training set for {type(d).__name__}")

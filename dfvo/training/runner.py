@@ -91,7 +91,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True) -
                                          monitor=model.monitor, mode=model.monitor_mode.value, save_top_k=1))
     elif model.monitor:
         log.warning("model.monitor=%s: data=%s gives no validation data (data.val_seeds=[] and no data.val_split), "
-                    "so there is no best checkpoint; last.ckpt is written as usual", model.monitor, data.name)
+                    "so there is no best checkpoint; last.ckpt is written as usual", model.monitor, data.kind)
     if t.validate_at_stop:
         callbacks.append(ValidateAtStop())
     if t.channels_last:

@@ -217,7 +217,7 @@ def test_task_dispatch_writes_out(monkeypatch, tmp_path: Path) -> None:
             assert cli.run(cfg) == {"task": task, "value": 1.5}
             assert seen[task].gt_dir == "G" and seen[task].pred_dir == "P"
             assert json.loads(out.read_text()) == {"task": task, "value": 1.5}
-        with pytest.raises(ValueError, match="task=pose: expected one of odometry, flow, depth"):
+        with pytest.raises(ValueError, match=r"task='pose'; expected one of \['odometry', 'flow', 'depth'\]"):
             cli.run(compose(config_name="evaluate", overrides=["task=pose"]))
 
 

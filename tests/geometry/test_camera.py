@@ -1,4 +1,4 @@
-"""Camera model: projection round trips and intrinsics under resize/crop against resampled images."""
+"""Camera model: projection round trips, intrinsics under resize/crop against resampled images, flow resizing."""
 
 import torch
 import torch.nn.functional as F
@@ -8,6 +8,7 @@ from dfvo.geometry.camera import (
     crop_intrinsics,
     intrinsics_matrix,
     project_points,
+    resize_flow,
     resize_intrinsics,
     rigid_flow,
 )
@@ -63,3 +64,16 @@ def test_rigid_flow_matches_point_motion():
     q = p @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
     uv, _ = project_points(q, K)
     assert torch.allclose(flow[0, :, 7, 10], uv[0, 0] - torch.tensor([10.0, 7.0]), atol=1e-4)
+
+
+def test_resize_flow_is_the_flow_of_the_resized_camera():
+    """A rigid flow resized to twice the size (vectors rescaled) is the rigid flow of the same motion seen by the
+    resized camera (intrinsics from resize_intrinsics), up to the bilinear interpolation of a smooth field."""
+    K = intrinsics_matrix(300.0, 300.0, 31.5, 23.5)
+    T = pose_from_axis_angle(torch.tensor([[0.0, 0.02, 0.0]]), torch.tensor([[0.1, 0.0, -0.5]]))
+    small = rigid_flow(torch.full((1, 1, 48, 64), 5.0), T, K)
+    big = rigid_flow(torch.full((1, 1, 96, 128), 5.0), T, resize_intrinsics(K, (48, 64), (96, 128)))
+    up = resize_flow(small, (96, 128))
+    assert up.shape == big.shape and float(big.abs().max()) > 5.0  # pixels, so the rescaling matters
+    assert float((up - big)[..., 2:-2, 2:-2].abs().max()) < 0.01
+    assert resize_flow(small, (48, 64)) is small

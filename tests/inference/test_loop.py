@@ -1,11 +1,13 @@
 """The inference loop: its overlap modes (serial; loader thread; loader and tracker threads) give the same poses for
 any batch size; frames are decoded once each, in the background unless serial; refinement is applied to the
-network-like flow; an early stop or a tracker error leaves no thread behind; an unknown mode is one clear error."""
+network-like flow; an early stop or a tracker error leaves no thread behind; an unknown mode is one clear error;
+``overlap=`` and ``cuda_sync=`` are settings of infer.py that reach the loop and its stage timer."""
 
 from __future__ import annotations
 
 import threading
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -154,6 +156,34 @@ def test_early_stop_and_tracker_errors_leave_no_thread(world_data: tuple) -> Non
 
 def test_an_unknown_overlap_mode_is_one_clear_error(world_data: tuple) -> None:
     seq, src = world_data
-    with pytest.raises(ValueError, match=r"overlap='both'; expected one of \('none', 'load', 'full'\)"):
+    with pytest.raises(ValueError, match=r"overlap='both'; expected one of \['none', 'load', 'full'\]"):
         _run(seq, src, 2, "both", None)
     assert not _dfvo_threads()
+
+
+def test_overlap_and_cuda_sync_are_infer_settings(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``overlap=`` and ``cuda_sync=`` on infer.py's command line reach the loop and the stage timer (no module
+    switch to set from outside), and the run's poses do not depend on the mode."""
+    from hydra import compose, initialize_config_module
+
+    import dfvo.inference.pipeline as pipeline
+
+    seen: list[tuple[str, bool]] = []
+    real = pipeline.track_sequence
+
+    def spy(*args: object, **kwargs: object) -> object:
+        seen.append((kwargs["overlap"], kwargs["timer"].cuda_sync))
+        yield from real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "track_sequence", spy)
+    poses = {}
+    for overlap, sync in (("none", "true"), ("full", "false")):
+        with initialize_config_module("dfvo.conf.infer", version_base="1.3"):
+            cfg = compose("infer", overrides=["data.num_frames=4", "img_res.height=64", "img_res.width=96",
+                                              "flow=oracle", "depth=oracle", "progress=false", "batch_size=2",
+                                              f"out_dir={tmp_path / overlap}", f"overlap={overlap}",
+                                              f"cuda_sync={sync}"])
+        summary = pipeline.run_inference(cfg)
+        poses[overlap] = np.loadtxt(summary["pose_file"])
+    assert seen == [("none", True), ("full", False)]
+    assert poses["none"].shape == (4, 12) and np.array_equal(poses["none"], poses["full"])

@@ -6,7 +6,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from dfvo.models.flow_net import FlowNet, FlowNetConfig, _upsample_flow
+from dfvo.geometry.camera import resize_flow
+from dfvo.models.flow_net import FlowNet, FlowNetConfig
 
 
 @pytest.fixture(scope="module")
@@ -74,9 +75,10 @@ def test_non_multiple_of_32_is_resized_and_rescaled(net: FlowNet, monkeypatch: p
 
 
 def test_upsample_flow_rescales_vectors() -> None:
+    """The network upsamples its flows with the package's one flow resize (vectors in the new pixel units)."""
     flow = torch.zeros(1, 2, 4, 8)
     flow[:, 0], flow[:, 1] = 1.5, -0.5
-    up = _upsample_flow(flow, (16, 16))
+    up = resize_flow(flow, (16, 16))
     torch.testing.assert_close(up[:, 0], torch.full((1, 16, 16), 3.0))
     torch.testing.assert_close(up[:, 1], torch.full((1, 16, 16), -2.0))
 

@@ -17,7 +17,7 @@ from dfvo.training.datamodule import DFVODataModule
 
 REPO = Path(__file__).resolve().parents[2]
 CONF = REPO / "dfvo" / "conf" / "train"
-SCHEMAS = {"model": C.MODEL_SCHEMAS, "data": C.DATA_SCHEMAS, "trainer": {"trainer": C.TrainerConfig}}
+SCHEMAS = {"model": C.MODEL_SCHEMAS, "data": C.TRAIN_DATA_SCHEMAS, "trainer": {"trainer": C.TrainerConfig}}
 SHARED = REPO.parent / "shared" / "data"
 
 
@@ -62,7 +62,7 @@ def test_every_yaml_is_a_schema_plus_only_the_diff(group: str) -> None:
     for name in names:
         raw, text = _raw(group, name), (CONF / group / f"{name}.yaml").read_text()
         if text.startswith("# @package _global_"):  # a preset reaching other groups (trainer=smoke): vs the schemas
-            base = OmegaConf.structured(C.TrainConfig(trainer=C.TrainerConfig(), data=C.SyntheticDataConfig()))
+            base = OmegaConf.structured(C.TrainConfig(trainer=C.TrainerConfig(), data=C.SyntheticTrainDataConfig()))
             assert set(raw) <= {"trainer", "data"}, f"{group}/{name}.yaml"
         else:
             assert raw.get("defaults", [None])[-1] == "_self_", f"{group}/{name}.yaml: defaults must end with _self_"
@@ -83,15 +83,17 @@ def test_training_and_inference_schemas_coexist_in_one_process() -> None:
     C.register_configs()
     register_infer()
     cfg = _compose("data=kitti_raw", "data.height=64")
-    assert OmegaConf.get_type(cfg.data) is C.KittiRawDataConfig and cfg.data.height == 64
+    assert OmegaConf.get_type(cfg.data) is C.KittiRawTrainDataConfig and cfg.data.height == 64
     with initialize_config_module("dfvo.conf.infer", version_base="1.3"):
         assert OmegaConf.get_type(compose("infer", overrides=["data=kitti_raw"]).data) is InferKittiRaw
+    assert InferKittiRaw.__name__ != C.KittiRawTrainDataConfig.__name__  # two families, two names, one discriminator
+    assert (cfg.data.kind, InferKittiRaw.kind) == ("kitti_raw", "kitti_raw")
 
 
 def test_groups_compose_into_their_schemas() -> None:
     cfg = _compose("model=depth_mono_sc", "data=kitti_raw", "trainer=gpu")
     assert OmegaConf.get_type(cfg.model) is C.DepthModelConfig and OmegaConf.get_type(cfg.trainer) is C.TrainerConfig
-    assert OmegaConf.get_type(cfg.data) is C.KittiRawDataConfig
+    assert OmegaConf.get_type(cfg.data) is C.KittiRawTrainDataConfig
     m = C.model_config(cfg)
     assert (m.name, m.stereo, m.w_consistency, m.monitor) == ("depth_mono_sc", False, 5.0, "val/abs_rel_med")
     t = C.typed(cfg.trainer)
@@ -104,7 +106,7 @@ def test_groups_compose_into_their_schemas() -> None:
     assert (smoke_data.batch_size, smoke_data.height, smoke_data.width) == (2, 64, 640)
     flow = C.model_config(_compose("model=flow_self"))
     assert (flow.mode, flow.lr, flow._target_) == (C.FlowMode.self, 1e-5, "dfvo.training.flow_module.FlowModule")
-    for kind, schema in C.DATA_SCHEMAS.items():
+    for kind, schema in C.TRAIN_DATA_SCHEMAS.items():
         assert isinstance(C.data_config(_compose(f"data={kind}")), schema)
 
 
