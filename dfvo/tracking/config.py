@@ -15,7 +15,7 @@ from enum import Enum, StrEnum
 
 __all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "SelectionConfig",
            "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "ScaleFilterConfig",
-           "GateConfig", "PnPConfig", "TrackerConfig"]
+           "GateConfig", "PnPConfig", "CovarianceConfig", "TrackerConfig"]
 
 
 class TrackerMode(StrEnum):
@@ -372,6 +372,32 @@ class PnPConfig:
 
 
 @dataclass
+class CovarianceConfig:
+    """Per-frame covariance of the relative step (``tracker.covariance``; :mod:`dfvo.tracking.covariance`).
+
+    Attributes:
+        inflation: factor on the E and PnP covariances (1: the normal equations as they are). The synthetic world
+            with known pixel noise is consistent at 1 (``tests/tracking/test_covariance.py``); real flow errors are
+            correlated between neighbouring pixels, so KITTI needs more (``docs/robots.md`` states the measured NEES
+            and the factor calibrated on one sequence and checked on the other).
+        constant_motion_rot_std: rotation std (rad, per axis) of a constant-motion frame (the previous motion
+            repeated): 0.1 rad = 5.7 degrees.
+        constant_motion_trans_std: translation std (m, per axis) of a constant-motion frame, or the step's length
+            when that is larger.
+    """
+
+    inflation: float = 1.0
+    constant_motion_rot_std: float = 0.1
+    constant_motion_trans_std: float = 1.0
+
+    def __post_init__(self) -> None:
+        _check(self.inflation > 0 and self.constant_motion_rot_std > 0 and self.constant_motion_trans_std > 0,
+               f"tracker.covariance: inflation={self.inflation}, constant_motion_rot_std="
+               f"{self.constant_motion_rot_std}, constant_motion_trans_std={self.constant_motion_trans_std}; "
+               "expected positive values")
+
+
+@dataclass
 class TrackerConfig:
     """Every setting of the odometry loop (:class:`dfvo.tracking.VisualOdometry`).
 
@@ -379,7 +405,7 @@ class TrackerConfig:
         mode: see :class:`TrackerMode`.
         seed: frame k of a sequence draws its random samples from ``torch.Generator().manual_seed(seed + k)``.
         correspondence, essential, model_selection, scale, road_plane, scale_filter, gate, pnp: the stages'
-            sections.
+            sections. covariance: the per-frame covariance of the step.
     """
 
     mode: TrackerMode = TrackerMode.hybrid
@@ -392,6 +418,7 @@ class TrackerConfig:
     scale_filter: ScaleFilterConfig = field(default_factory=ScaleFilterConfig)
     gate: GateConfig = field(default_factory=GateConfig)
     pnp: PnPConfig = field(default_factory=PnPConfig)
+    covariance: CovarianceConfig = field(default_factory=CovarianceConfig)
 
     def __post_init__(self) -> None:
         self.mode = _choice(TrackerMode, self.mode, "tracker.mode")
