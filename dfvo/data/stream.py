@@ -124,8 +124,7 @@ class StreamReader:
         if not self._container.streams.video:
             self._container.close()
             raise DatasetError(f"data.url={self.url}: the source has no video stream")
-        stream = self._container.streams.video[0]
-        stream.thread_type = "AUTO"
+        stream = self._container.streams.video[0]  # no frame threading: it holds frames back (latency)
         self.size = (int(stream.codec_context.height), int(stream.codec_context.width))
         return self
 
@@ -163,23 +162,22 @@ class StreamReader:
     def _decode(self) -> None:
         av = self._av
         container = self._container
+        stream = container.streams.video[0]
         try:
-            for frame in container.decode(container.streams.video[0]):
-                if self._stop.is_set():
+            for packet in container.demux(stream):  # the last (empty) packet flushes the decoder at the end
+                if not self._emit(packet.decode()):
                     self.ended_by = "closed"
                     break
-                stamp = frame.time if frame.time is not None else time.monotonic() - self._t0
-                item = StreamFrame(frame.to_ndarray(format="rgb24"), float(stamp), self.received)
-                self.received += 1
-                self._deliver(item)
             else:
                 self.ended_by = "end"
         except av.error.ExitError:  # the interrupt callback of PyAV's timeout
             self.ended_by = "stalled"
             self.error = f"no data for {self.timeout_s:g} s"
+            self._flush(stream)
         except av.error.FFmpegError as err:
             self.ended_by = "error"
             self.error = _reason(err)
+            self._flush(stream)
         except Exception as err:  # noqa: BLE001 - the thread must always hand the end to the consumer
             self.ended_by = "error"
             self.error = f"{type(err).__name__}: {err}"
@@ -189,6 +187,24 @@ class StreamReader:
             except Exception:  # noqa: BLE001
                 pass
             self._finish()
+
+    def _emit(self, decoded: Any) -> bool:
+        """Hand out decoded frames; False once the consumer has stopped."""
+        for frame in decoded:
+            if self._stop.is_set():
+                return False
+            stamp = frame.time if frame.time is not None else time.monotonic() - self._t0
+            item = StreamFrame(frame.to_ndarray(format="rgb24"), float(stamp), self.received)
+            self.received += 1
+            self._deliver(item)
+        return not self._stop.is_set()
+
+    def _flush(self, stream: Any) -> None:
+        """The frames still inside the decoder when the data stopped coming."""
+        try:
+            self._emit(stream.codec_context.decode(None))
+        except Exception:  # noqa: BLE001 - a decoder that cannot flush keeps what it had
+            pass
 
     def _deliver(self, item: StreamFrame) -> None:
         if self.realtime:

@@ -376,10 +376,12 @@ class CovarianceConfig:
     """Per-frame covariance of the relative step (``tracker.covariance``; :mod:`dfvo.tracking.covariance`).
 
     Attributes:
-        inflation: factor on the E and PnP covariances (1: the normal equations as they are). The synthetic world
-            with known pixel noise is consistent at 1 (``tests/tracking/test_covariance.py``); real flow errors are
-            correlated between neighbouring pixels, so KITTI needs more (``docs/robots.md`` states the measured NEES
-            and the factor calibrated on one sequence and checked on the other).
+        inflation: factor on the part of the E and PnP covariances that comes from the normal equations (pixel
+            noise; not the length's variance from the scale filter). 1: the normal equations as they are, consistent
+            on the synthetic world with independent pixel noise (``tests/tracking/test_covariance.py``). Real flow
+            errors are correlated between neighbouring pixels, which shrinks the effective number of
+            correspondences: ``docs/robots.md`` states KITTI's measured NEES and the factor calibrated on one
+            sequence and checked on the other.
         constant_motion_rot_std: rotation std (rad, per axis) of a constant-motion frame (the previous motion
             repeated): 0.1 rad = 5.7 degrees.
         constant_motion_trans_std: translation std (m, per axis) of a constant-motion frame, or the step's length

@@ -27,8 +27,9 @@ Where each frame's covariance comes from (:func:`step_covariance`):
     - ``constant_motion`` (and frames whose normal equations are singular): a large diagonal
       (``tracker.covariance.constant_motion_rot_std`` rad, ``constant_motion_trans_std`` m or the step's length if
       larger): a filter fusing it learns next to nothing from the frame.
-    E and PnP covariances are multiplied by ``tracker.covariance.inflation`` (1: the model's own, calibrated on the
-    synthetic world with known noise; see ``docs/robots.md`` for the factor KITTI's correlated flow errors need).
+    The normal equations' part (pixel noise) is multiplied by ``tracker.covariance.inflation``: 1 is the model's
+    own, calibrated on the synthetic world with independent pixel noise; real flow errors are correlated between
+    neighbouring pixels, which the normal equations cannot see (``docs/robots.md``: the factor KITTI needs).
 """
 
 from __future__ import annotations
@@ -203,13 +204,15 @@ def essential_normal_covariance(R: torch.Tensor, t: torch.Tensor, pts_prev: torc
 
 
 def essential_step_covariance(T_cur_prev: torch.Tensor, pts_prev: torch.Tensor, pts_cur: torch.Tensor,
-                              K: torch.Tensor, threshold_px: float, log_length_var: float) -> torch.Tensor | None:
+                              K: torch.Tensor, threshold_px: float, log_length_var: float,
+                              inflation: float = 1.0) -> torch.Tensor | None:
     """6x6 covariance of ``T_prev_cur`` (module convention) of an E-tracked frame.
 
     Args:
         T_cur_prev: (4,4) the metric pose the tracker gave (``[R | s t]``).
         pts_prev, pts_cur: (N,2) pixels of the selected rows. K: (3,3). threshold_px: the E inlier threshold.
         log_length_var: variance of ``log s`` (the scale filter's posterior).
+        inflation: factor on the normal equations' covariance of (R, unit t) (not on the length's variance).
 
     Returns:
         (6,6) float64, or None when the normal equations cannot be solved.
@@ -225,7 +228,7 @@ def essential_step_covariance(T_cur_prev: torch.Tensor, pts_prev: torch.Tensor, 
     C5, basis, _, _ = normal
     t0 = tm / s0
     Cp = torch.zeros(6, 6, dtype=torch.float64)
-    Cp[:5, :5] = C5
+    Cp[:5, :5] = C5 * inflation
     Cp[5, 5] = float(log_length_var)
     R_pc0, t_pc0 = R0.T, -R0.T @ tm
 
@@ -247,7 +250,8 @@ def _project(T: torch.Tensor, X: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 
 def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pixels_cur: torch.Tensor,
-                        K: torch.Tensor, threshold_px: float, depth_log_var: float) -> torch.Tensor | None:
+                        K: torch.Tensor, threshold_px: float, depth_log_var: float,
+                        inflation: float = 1.0) -> torch.Tensor | None:
     """6x6 covariance of ``T_prev_cur`` (module convention) of a PnP-tracked frame.
 
     Args:
@@ -255,6 +259,7 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
             pixels_cur: (N,2) their observations in the current image. K: (3,3).
         threshold_px: PnP's inlier threshold (reprojection error, pixels).
         depth_log_var: variance of the log of the depth's global scale (PnP's translation scales with it).
+        inflation: factor on the normal equations' covariance (not on the depth scale's variance).
 
     Returns:
         (6,6) float64, or None (too few inliers, singular normal equations).
@@ -282,7 +287,7 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
         return None
     sigma = truncated_sigma(res0, threshold_px, 2 * n - 6, dims=2)
     Cp = torch.zeros(7, 7, dtype=torch.float64)
-    Cp[:6, :6] = sigma * sigma * info
+    Cp[:6, :6] = sigma * sigma * info * inflation
     Cp[6, 6] = float(depth_log_var)
     R_pc0, t_pc0 = R0.T, -R0.T @ t0
 
@@ -326,16 +331,17 @@ def step_covariance(tracker: str | None, T_cur_prev: torch.Tensor | None, T_prev
     ccfg = cfg.covariance
     cov = None
     if tracker == "E" and T_cur_prev is not None:
-        cov = essential_step_covariance(T_cur_prev, pts_prev, pts_cur, K, cfg.essential.threshold_px, log_length_var)
+        cov = essential_step_covariance(T_cur_prev, pts_prev, pts_cur, K, cfg.essential.threshold_px, log_length_var,
+                                        ccfg.inflation)
     elif tracker == "PnP" and T_cur_prev is not None:
         z, ok = sample_depth(depth_prev, pts_prev[None], cfg.scale.max_depth, cfg.scale.depth_crop_top)
         ok = ok[0]
         X = backproject_points(pts_prev[None].to(torch.float64), z, K[None].to(torch.float64))[0]
         cov = pnp_step_covariance(T_cur_prev, X[ok], pts_cur[ok], K, cfg.pnp.threshold_px,
-                                  cfg.scale_filter.cnn_log_std ** 2)
+                                  cfg.scale_filter.cnn_log_std ** 2, ccfg.inflation)
     if cov is None or not bool(torch.isfinite(cov).all()):
         return constant_motion_covariance(T_prev_cur, ccfg)
-    return cov * ccfg.inflation
+    return cov
 
 
 def length_log_variance(estimate: object | None, prior_pxx: float, length: float, cfg: object) -> float:
