@@ -37,7 +37,6 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.func import jacfwd
 
 __all__ = ["PARAMETERS", "step_covariance", "essential_normal_covariance", "essential_step_covariance",
            "pnp_step_covariance", "length_log_variance", "constant_motion_covariance", "truncated_sigma",
@@ -54,11 +53,13 @@ MIN_INLIERS = 8
 
 
 # ---------------------------------------------------------------------------------------------------- small helpers
+_GENERATORS = torch.tensor([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0],
+                            [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=torch.float64)  # skew(v).flatten() = v @ G
+
+
 def _skew(v: torch.Tensor) -> torch.Tensor:
-    """(3,) -> (3,3) with ``skew(v) @ x = v x x``."""
-    z = torch.zeros((), dtype=v.dtype, device=v.device)
-    return torch.stack([torch.stack([z, -v[2], v[1]]), torch.stack([v[2], z, -v[0]]),
-                        torch.stack([-v[1], v[0], z])])
+    """(...,3) -> (...,3,3) with ``skew(v) @ x = v x x``."""
+    return (v @ _GENERATORS.to(v)).reshape(*v.shape[:-1], 3, 3)
 
 
 def _vee_antisym(M: torch.Tensor) -> torch.Tensor:
@@ -92,6 +93,16 @@ def _normalised(pts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """(N,2) pixels -> (N,3) homogeneous normalised coordinates ``K^-1 [u, v, 1]``."""
     ones = torch.ones_like(pts[:, :1])
     return torch.cat([pts, ones], -1) @ torch.linalg.inv(K).T
+
+
+def _jacobian(f: object, n: int, h: float = 1e-6) -> torch.Tensor:
+    """(M,n) Jacobian at 0 of ``f``: (B,n) float64 -> (B,M) (batched over parameter vectors), by central
+    differences in one batched call. The functions differentiated here are smooth and O(1)-scaled in float64, so the
+    truncation (~h^2) and rounding (~1e-16/h) errors are ~1e-10 relative; far cheaper than autograd's forward mode
+    (which also costs seconds on its first call)."""
+    steps = torch.eye(n, dtype=torch.float64) * h
+    out = f(torch.cat([steps, -steps]))
+    return ((out[:n] - out[n:]) / (2.0 * h)).T
 
 
 def _inv_sym(A: torch.Tensor) -> torch.Tensor | None:
@@ -153,11 +164,11 @@ def truncated_sigma(residuals: torch.Tensor, cutoff: float, dof: int, dims: int 
 
 # ---------------------------------------------------------------------------------------------------- E frames
 def _sampson(E: torch.Tensor, Xi: torch.Tensor, Xj: torch.Tensor) -> torch.Tensor:
-    """Signed Sampson distances (N,) of homogeneous normalised points (N,3) to ``x_j^T E x_i = 0``."""
-    a = Xi @ E.T  # E x_i
+    """Signed Sampson distances (...,N) of homogeneous normalised points (N,3) to ``x_j^T E x_i = 0``, E (...,3,3)."""
+    a = Xi @ E.transpose(-1, -2)  # E x_i
     c = Xj @ E  # E^T x_j
     e = (Xj * a).sum(-1)
-    return e / (a[:, 0] ** 2 + a[:, 1] ** 2 + c[:, 0] ** 2 + c[:, 1] ** 2).clamp_min(1e-300).sqrt()
+    return e / (a[..., 0] ** 2 + a[..., 1] ** 2 + c[..., 0] ** 2 + c[..., 1] ** 2).clamp_min(1e-300).sqrt()
 
 
 def essential_normal_covariance(R: torch.Tensor, t: torch.Tensor, pts_prev: torch.Tensor, pts_cur: torch.Tensor,
@@ -181,7 +192,7 @@ def essential_normal_covariance(R: torch.Tensor, t: torch.Tensor, pts_prev: torc
     Xi, Xj = _normalised(pts_prev.to(torch.float64), K), _normalised(pts_cur.to(torch.float64), K)
     focal = 0.5 * float(K[0, 0] + K[1, 1])
     thr = threshold_px / focal
-    r0 = _sampson(_skew(t) @ R, Xi, Xj)
+    r0 = _sampson(_skew(t) @ R, Xi, Xj)  # (N,)
     inl = torch.isfinite(r0) & (r0.abs() < thr)
     n = int(inl.sum())
     if n < MIN_INLIERS:
@@ -189,13 +200,13 @@ def essential_normal_covariance(R: torch.Tensor, t: torch.Tensor, pts_prev: torc
     Xi, Xj, r0 = Xi[inl], Xj[inl], r0[inl]
     basis = _tangent_basis(t)
 
-    def residuals(p: torch.Tensor) -> torch.Tensor:
-        Rp = R @ (torch.eye(3, dtype=p.dtype) + _skew(p[:3]))
-        tp = t + p[3] * basis[0] + p[4] * basis[1]
-        tp = tp / tp.norm()
+    def residuals(p: torch.Tensor) -> torch.Tensor:  # (B,5) -> (B,n)
+        Rp = R @ (torch.eye(3, dtype=p.dtype) + _skew(p[:, :3]))
+        tp = t + p[:, 3:4] * basis[0] + p[:, 4:5] * basis[1]
+        tp = tp / tp.norm(dim=-1, keepdim=True)
         return _sampson(_skew(tp) @ Rp, Xi, Xj)
 
-    J = jacfwd(residuals)(torch.zeros(5, dtype=torch.float64))  # (n,5)
+    J = _jacobian(residuals, 5)  # (n,5)
     info = _inv_sym(J.T @ J)
     if info is None:
         return None
@@ -232,21 +243,23 @@ def essential_step_covariance(T_cur_prev: torch.Tensor, pts_prev: torch.Tensor, 
     Cp[5, 5] = float(log_length_var)
     R_pc0, t_pc0 = R0.T, -R0.T @ tm
 
-    def step(p: torch.Tensor) -> torch.Tensor:  # parameters -> error of T_prev_cur (module convention)
-        R = R0 @ (torch.eye(3, dtype=p.dtype) + _skew(p[:3]))
-        u = t0 + p[3] * basis[0] + p[4] * basis[1]
-        t = s0 * torch.exp(p[5]) * u / u.norm()
-        R_pc, t_pc = R.T, -R.T @ t
-        return torch.cat([_vee_antisym(R_pc @ R_pc0.T), t_pc - t_pc0])
+    def step(p: torch.Tensor) -> torch.Tensor:  # (B,6) parameters -> (B,6) error of T_prev_cur (module convention)
+        R = R0 @ (torch.eye(3, dtype=p.dtype) + _skew(p[:, :3]))
+        u = t0 + p[:, 3:4] * basis[0] + p[:, 4:5] * basis[1]
+        t = s0 * torch.exp(p[:, 5:6]) * u / u.norm(dim=-1, keepdim=True)
+        R_pc = R.transpose(-1, -2)
+        t_pc = -(R_pc @ t[..., None])[..., 0]
+        return torch.cat([_vee_antisym(R_pc @ R_pc0.T), t_pc - t_pc0], -1)
 
-    G = jacfwd(step)(torch.zeros(6, dtype=torch.float64))
+    G = _jacobian(step, 6)
     return _symmetric(G @ Cp @ G.T)
 
 
 # ---------------------------------------------------------------------------------------------------- PnP frames
 def _project(T: torch.Tensor, X: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    Xc = X @ T[:3, :3].T + T[:3, 3]
-    return (Xc[:, :2] / Xc[:, 2:3]) @ K[:2, :2].T + K[:2, 2]
+    """Pixels (...,N,2) of points X (N,3) under poses T (...,4,4) (``T_cur_prev``) and intrinsics K (3,3)."""
+    Xc = X @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
+    return (Xc[..., :2] / Xc[..., 2:3]) @ K[:2, :2].T + K[:2, 2]
 
 
 def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pixels_cur: torch.Tensor,
@@ -275,13 +288,14 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
     X, x, res0 = X[inl], x[inl], res0[inl]
     R0, t0 = T0[:3, :3], T0[:3, 3]
 
-    def perturbed(p: torch.Tensor) -> torch.Tensor:  # p = [rho, phi, log lambda]; left perturbation of T_cur_prev
-        dR = torch.eye(3, dtype=p.dtype) + _skew(p[3:6])
-        bottom = torch.eye(4, dtype=p.dtype)[3:]
-        return torch.cat([torch.cat([dR @ R0, (dR @ t0 + p[:3])[:, None]], 1), bottom], 0)
+    def perturbed(p: torch.Tensor) -> torch.Tensor:  # (B,>=6) [rho, phi, ...] -> (B,4,4): left perturbation
+        dR = torch.eye(3, dtype=p.dtype) + _skew(p[:, 3:6])
+        T = torch.eye(4, dtype=p.dtype).repeat(p.shape[0], 1, 1)
+        T[:, :3, :3] = dR @ R0
+        T[:, :3, 3] = (dR @ t0[:, None])[..., 0] + p[:, :3]
+        return T
 
-    J = jacfwd(lambda p: (_project(perturbed(torch.cat([p, p.new_zeros(1)])), X, K) - x).reshape(-1))(
-        torch.zeros(6, dtype=torch.float64))  # (2n,6)
+    J = _jacobian(lambda p: (_project(perturbed(p), X, K) - x).reshape(p.shape[0], -1), 6)  # (2n,6)
     info = _inv_sym(J.T @ J)
     if info is None:
         return None
@@ -291,13 +305,13 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
     Cp[6, 6] = float(depth_log_var)
     R_pc0, t_pc0 = R0.T, -R0.T @ t0
 
-    def step(p: torch.Tensor) -> torch.Tensor:
+    def step(p: torch.Tensor) -> torch.Tensor:  # (B,7) -> (B,6)
         T = perturbed(p)
-        R, t = T[:3, :3], T[:3, 3] * torch.exp(p[6])
-        R_pc, t_pc = R.T, -R.T @ t
-        return torch.cat([_vee_antisym(R_pc @ R_pc0.T), t_pc - t_pc0])
+        R_pc = T[:, :3, :3].transpose(-1, -2)
+        t_pc = -(R_pc @ (T[:, :3, 3] * torch.exp(p[:, 6:7]))[..., None])[..., 0]
+        return torch.cat([_vee_antisym(R_pc @ R_pc0.T), t_pc - t_pc0], -1)
 
-    G = jacfwd(step)(torch.zeros(7, dtype=torch.float64))
+    G = _jacobian(step, 7)
     return _symmetric(G @ Cp @ G.T)
 
 

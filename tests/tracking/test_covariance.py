@@ -11,7 +11,7 @@ import torch
 
 from dfvo.data.synthetic import SyntheticWorld
 from dfvo.tracking import TrackerConfig, VisualOdometry
-from dfvo.tracking.config import ScaleConfig, ScaleFilterConfig, SelectionConfig
+from dfvo.tracking.config import CovarianceConfig, ScaleConfig, ScaleFilterConfig, SelectionConfig
 from dfvo.tracking.covariance import (
     COVARIANCE_FIELDS,
     constant_motion_covariance,
@@ -65,7 +65,8 @@ def noisy_run(num_frames: int, pixel_sigma: float, depth_log_sigma: float, seed:
     cfg = TrackerConfig(mode=mode,
                         correspondence=SelectionConfig(method="uniform"),  # rows chosen independently of the noise
                         scale=ScaleConfig(depth_views=1, temporal=False, camera_height=None),
-                        scale_filter=ScaleFilterConfig(cnn_log_std=depth_log_sigma))
+                        scale_filter=ScaleFilterConfig(cnn_log_std=depth_log_sigma),
+                        covariance=CovarianceConfig(inflation=1.0))  # independent noise: the model as it is
     vo = VisualOdometry(cfg)
     K = world.intrinsics()[None]
     poses = world.poses().double()
@@ -162,6 +163,28 @@ def test_world_pose_covariance_propagation_matches_sampling() -> None:
     sampled = torch.cov(errs.T)
     predicted = propagate_pose_covariance(C_w, T_w, C_s, T_s)
     assert torch.allclose(predicted, sampled, atol=0.05 * float(predicted.diagonal().max()))
+
+
+def test_the_default_inflation_scales_the_normal_equations_only() -> None:
+    """The default (KITTI-calibrated) inflation multiplies the rotation part by exactly its factor; the length's
+    variance (the scale filter's) is not inflated."""
+    world = SyntheticWorld(seed=0, num_frames=3)
+    frame = world.render(0, right=False)
+    covs = []
+    for inflation in (1.0, TrackerConfig().covariance.inflation):
+        cfg = TrackerConfig(scale=ScaleConfig(depth_views=1, temporal=False, camera_height=None),
+                            covariance=CovarianceConfig(inflation=inflation))
+        res = VisualOdometry(cfg).step(frame["flow_fwd"][None], frame["flow_bwd"][None], frame["depth"][None],
+                                       world.intrinsics()[None])
+        assert res.diagnostics.tracker == "E"
+        covs.append(res.covariance)
+    k = TrackerConfig().covariance.inflation
+    assert k > 1 and torch.allclose(covs[1][:3, :3], k * covs[0][:3, :3], rtol=1e-9)
+    t = torch.linalg.inv(res.T_prev_cur)[:3, 3]
+    u = -(res.T_prev_cur[:3, :3] @ (t / t.norm()))  # the step's direction (previous camera's axes)
+    length_var = [float(u @ C[3:, 3:] @ u) for C in covs]
+    cnn_var = TrackerConfig().scale_filter.cnn_log_std ** 2 * float(res.T_prev_cur[:3, 3].norm()) ** 2
+    assert length_var[0] == pytest.approx(cnn_var, rel=0.05) and length_var[1] == pytest.approx(cnn_var, rel=0.1)
 
 
 def test_rows_constant_motion_and_ros_order() -> None:
