@@ -30,7 +30,6 @@ from dfvo.cli.evaluate import EvaluateConfig
 from dfvo.data.euroc import open_euroc
 from dfvo.data.kitti_odometry import KittiOdometry
 from dfvo.data.tum_rgbd import open_tum
-from dfvo.io.association import associate_trajectories
 from dfvo.eval.report import evaluate_sequences
 from dfvo.geometry.gric import gric, gric_essential, gric_homography
 from dfvo.geometry.pnp import PnPConfig, solve_pnp_ransac
@@ -48,6 +47,7 @@ from dfvo.inference.outputs import fallback_summary
 from dfvo.inference.rerun_observer import RerunObserver
 from dfvo.inference.tb_logging import TensorboardObserver
 from dfvo.inference.timing import StageTimer
+from dfvo.io.association import associate_trajectories
 from dfvo.losses.flow_losses import self_supervised_flow_loss
 from dfvo.losses.photometric import ssim_l1_error
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, build_pyramid

@@ -137,3 +137,28 @@ def read_image(path: str | Path, *, size: tuple[int, int] | None = None,
         raise DatasetError(f"image {path} is {arr.shape[0]}x{arr.shape[1]}, expected "
                            f"{expected_size[0]}x{expected_size[1]} (the size of the first frame)")
     return _to_chw(arr, size)
+
+
+def array_to_image(arr: np.ndarray, *, size: tuple[int, int] | None = None) -> torch.Tensor:
+    """An image held in memory as :func:`read_image` would give it from a file: (H,W) or (H,W,3) uint8 (RGB) or
+    uint16, or float in [0,1], to a (3,H,W) float32 tensor in [0,1] (gray replicated), resized to ``size`` the
+    same way (the same numbers as reading the same pixels from a PNG).
+
+    Raises:
+        ValueError: another shape or dtype (one line saying what was expected).
+    """
+    a = np.asarray(arr)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3):
+        raise ValueError(f"image array of shape {a.shape}; expected (H,W) or (H,W,3) (RGB)")
+    if a.dtype == np.uint8:
+        a = a * np.float32(1.0 / 255.0)
+    elif a.dtype == np.uint16:
+        a = a * np.float32(1.0 / 65535.0)
+    elif np.issubdtype(a.dtype, np.floating):
+        a = a.astype(np.float32, copy=False)
+    else:
+        raise ValueError(f"image array of dtype {a.dtype}; expected uint8, uint16 or float in [0,1]")
+    return _to_chw(a, size)
+

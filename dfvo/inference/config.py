@@ -30,8 +30,8 @@ from dfvo.validation import check, choice, typed
 
 __all__ = ["PoseFormat", "OverlapMode", "ViewerKind", "ImgResConfig", "DataConfig", "SyntheticDataConfig",
            "KittiOdomDataConfig", "KittiRawDataConfig", "FolderDataConfig", "EurocDataConfig", "TumDataConfig",
-           "VideoDataConfig", "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig", "InferConfig", "register_configs",
-           "typed"]
+           "VideoDataConfig", "StreamDataConfig", "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig", "OutputConfig",
+           "InferConfig", "register_configs", "typed", "compose_infer_config"]
 # typed: dfvo.validation.typed, re-exported (scripts import it from here)
 
 
@@ -198,6 +198,36 @@ class TumDataConfig(CameraDataConfig):
     unmatched: str = "trim"
 
 
+@dataclass
+class StreamDataConfig(CameraDataConfig):
+    """A live source read as frames arrive (:mod:`dfvo.data.stream`, PyAV: ``pip install "dfvo[video]"``): ``url``
+    is a camera device (``/dev/video0``, or ``0`` for it), a network stream (``rtsp://``, ``http://``, ``tcp://``,
+    ``udp://``, ``srt://``) or a video file still being written (read on as it grows).
+
+    Attributes:
+        url: the source. input_format: PyAV/FFmpeg input format (null: from the url; ``/dev/video*`` uses ``v4l2``).
+        options: FFmpeg options for opening it (e.g. ``{rtsp_transport: tcp}``, ``{video_size: 640x480}``).
+        realtime: true: when tracking falls behind, keep the latest frame and drop the older ones (counted per frame
+            in ``frames.csv`` and in ``summary.json``); false: every frame is tracked (the source waits, or
+            buffers).
+        timeout_s: opening, and waiting for the next frame, give up after this many seconds (a stalled source ends
+            the run with its outputs complete).
+        max_frames: stop after this many frames tracked (null: until the source ends).
+        size_change: a frame of another size than the first is ``resize``d to it (noted once) or ``refuse``d (the
+            run ends there with one line).
+    """
+
+    kind: str = "stream"
+    seq: str | None = "stream"
+    url: str | None = None
+    input_format: str | None = None
+    options: dict[str, str] = field(default_factory=dict)
+    realtime: bool = True
+    timeout_s: float = 10.0
+    max_frames: int | None = None
+    size_change: str = "resize"
+
+
 DATA_SCHEMAS: dict[str, type[DataConfig]] = {
     "synthetic": SyntheticDataConfig,
     "kitti_odom": KittiOdomDataConfig,
@@ -206,6 +236,7 @@ DATA_SCHEMAS: dict[str, type[DataConfig]] = {
     "euroc": EurocDataConfig,
     "tum": TumDataConfig,
     "video": VideoDataConfig,
+    "stream": StreamDataConfig,
 }
 
 
@@ -223,6 +254,22 @@ class ViewerConfig:
 
     kind: ViewerKind = ViewerKind.none
     spawn: bool = False
+
+
+@dataclass
+class OutputConfig:
+    """Optional outputs of a run besides the trajectory, ``frames.csv`` and the summary.
+
+    Attributes:
+        rosbag: write ``OUT/bag/``, a ROS 2 bag (:mod:`dfvo.io.rosbag`, ``pip install "dfvo[ros]"``) with
+            ``nav_msgs/msg/Odometry`` (pose, twist, covariances), ``tf2_msgs/msg/TFMessage`` and the ground truth,
+            as frames are produced.
+        ros_world_frame, ros_camera_frame: the frame ids of the messages (the world is the first camera's frame).
+    """
+
+    rosbag: bool = False
+    ros_world_frame: str = "odom"
+    ros_camera_frame: str = "camera"
 
 
 @dataclass
@@ -247,7 +294,7 @@ class InferConfig:
         verbose: full tracebacks for expected errors (bad data, checkpoint, setting).
         warn_fallback_rate: loud warning when more frames than this fell back to constant motion / PnP failed.
         online_finetune: self-supervised flow finetuning on the sequence (network flow only); online: its settings.
-        tensorboard, viewer: optional per-frame logging.
+        tensorboard, viewer: optional per-frame logging. output: optional outputs (the ROS 2 bag).
     """
 
     data: Any = MISSING
@@ -271,6 +318,7 @@ class InferConfig:
     online: OnlineFlowConfig = field(default_factory=OnlineFlowConfig)
     tensorboard: TensorboardConfig = field(default_factory=TensorboardConfig)
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
 
     def __post_init__(self) -> None:
         choice(AlignMode, self.align, "align")
@@ -293,6 +341,27 @@ def register_configs() -> None:
     cs.store(name="infer_schema", node=InferConfig)
     for kind, schema in DATA_SCHEMAS.items():
         cs.store(group="data/schema", name=kind, node=schema)
+
+
+def compose_infer_config(overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
+    """``infer.py``'s configuration composed by Hydra's compose API from the same config tree and defaults
+    (``dfvo/conf/infer/infer.yaml``), with command-line style ``overrides`` (``["flow=dis",
+    "tracker.scale.camera_height=1.65"]``). Works inside a running Hydra app too (its global state is restored).
+
+    Raises:
+        hydra.errors.HydraException / omegaconf errors: an unknown key, group option or a wrong type (as infer.py).
+    """
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.initialize import get_gh_backup, restore_gh_from_backup
+
+    backup = get_gh_backup()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="dfvo.conf.infer", version_base="1.3"):
+            return compose(config_name="infer", overrides=list(overrides))
+    finally:
+        restore_gh_from_backup(backup)
 
 
 register_configs()

@@ -128,6 +128,9 @@ def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSeque
     """
     if data.kind not in DATA_SCHEMAS:
         raise ValueError(f"data.kind={data.kind!r}; expected one of {tuple(DATA_SCHEMAS)}")
+    if data.kind == "stream":
+        raise ValueError("data=stream is a live source, read frame by frame (dfvo.inference.live.run_live), not a "
+                         "sequence")
     data, name = resolve_data(data, seq)
     if data.kind == "synthetic":  # rendered at the working size directly
         return _synthetic(data, name, working_hw(img_res, KITTI_HW))

@@ -41,7 +41,7 @@ from dfvo.tracking import FrameResult, VisualOdometry
 from dfvo.tracking.config import TrackerMode
 from dfvo.validation import choice
 
-__all__ = ["FrameRecord", "track_sequence"]
+__all__ = ["FrameRecord", "FrameStepper", "track_sequence"]
 
 
 def _overlap_mode(overlap: OverlapMode | str | bool) -> OverlapMode:
@@ -60,6 +60,7 @@ class FrameRecord:
         tracker used. depth_prev: (1,H,W) metres. depth: (1,H,W) of frame ``index`` when it was computed (two-view
         scale), else None. result: the tracker's pose and diagnostics.
         stage_seconds: this frame's share of each stage (``t_flow``, ``t_refine``, ``t_depth``, ``t_tracker``).
+        timestamp: the frame's time in seconds when the data has one (set by the run that writes the outputs).
     """
 
     index: int
@@ -71,6 +72,7 @@ class FrameRecord:
     result: FrameResult
     stage_seconds: dict[str, float]
     depth: torch.Tensor | None = None
+    timestamp: float | None = None
 
 
 @dataclass
@@ -126,6 +128,105 @@ def _batches(length: int, batch_size: int) -> list[list[int]]:
     return [list(range(first, min(first + batch, length - 1))) for first in range(0, length - 1, batch)]
 
 
+def _two_views(vo: VisualOdometry) -> bool:
+    """Whether the tracker takes the later frame's depth of each pair too (two-view scale)."""
+    return vo.cfg.scale.depth_views == 2 and vo.cfg.mode != TrackerMode.pnp
+
+
+def _pair_stage(imgs: torch.Tensor, idx: list[int], flow_src: FlowSource, depth_src: DepthSource, timer: StageTimer,
+                two_views: bool, depth_carry: torch.Tensor | None, finetuner: object | None = None
+                ) -> tuple[_Batch, torch.Tensor | None]:
+    """Flow and depth of the pairs ``idx[k] -> idx[k]+1`` of ``imgs`` (n+1,3,H,W); ``depth_carry`` (1,1,H,W) is the
+    first frame's depth when already computed (two-view scale). Returns the batch and the next carry."""
+    n = len(idx)
+    if finetuner is not None and finetuner.active:
+        with timer("finetune"):
+            for k in range(n):
+                finetuner.step(*flow_src.network_inputs(imgs[k:k + 1], imgs[k + 1:k + 2]))
+    with timer("flow"):
+        flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)
+    with timer("depth"):
+        depth_next = None
+        if two_views:
+            later = depth_src(imgs[1:], [i + 1 for i in idx])
+            first_depth = depth_src(imgs[:1], idx[:1]) if depth_carry is None else depth_carry
+            depth = torch.cat([first_depth, later[:-1]])
+            depth_next, depth_carry = later, later[-1:]
+        else:
+            depth = depth_src(imgs[:-1], idx)
+    share = {"t_flow": timer.last["flow"] / n, "t_refine": 0.0, "t_depth": timer.last["depth"] / n, "t_tracker": 0.0}
+    return _Batch(idx, imgs, flow_fwd, flow_bwd, depth, depth_next, share), depth_carry
+
+
+def _refine_stage(work: _Batch, refine: FlowRefinementConfig | None, timer: StageTimer) -> None:
+    """Refine the batch's flows photometrically in place (nothing when ``refine`` is None)."""
+    if refine is None:
+        return
+    with timer("refine"):  # only this thread refines: last["refine"] is this call's
+        work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
+    work.share["t_refine"] = timer.last["refine"] / len(work.idx)
+
+
+def _track_stage(work: _Batch, vo: VisualOdometry, K: torch.Tensor, timer: StageTimer) -> list[FrameResult]:
+    """The tracker on the batch's pairs (K (1,3,3)), in order."""
+    n = len(work.idx)
+    with timer("tracker"):  # only this thread tracks: last["tracker"] is this call's
+        results = vo.run(work.flow_fwd, work.flow_bwd, work.depth, K.expand(n, 3, 3), batch_size=n,
+                         depths_next=work.depth_next)
+    for part in ("selection", "e_tracker", "sequential"):  # the tracker's own split of its time
+        timer.add(f"tracker_{part}", sum(getattr(r.diagnostics, f"time_{part}", 0.0) for r in results))
+    work.share["t_tracker"] = timer.last["tracker"] / n
+    return results
+
+
+def _records(work: _Batch, results: list[FrameResult]) -> Iterator[FrameRecord]:
+    for k, (i, res) in enumerate(zip(work.idx, results, strict=True)):
+        yield FrameRecord(i + 1, work.imgs[k], work.imgs[k + 1], work.flow_fwd[k], work.flow_bwd[k], work.depth[k],
+                          res, work.share, None if work.depth_next is None else work.depth_next[k])
+
+
+class FrameStepper:
+    """The loop of :func:`track_sequence` one frame at a time, for frames that arrive one by one (a live stream,
+    :class:`dfvo.api.Odometry`): the same sources, refinement and tracker as a batch of one pair, each frame's depth
+    computed once. Poses equal :func:`track_sequence`'s on the same frames (its batches are causal too).
+
+    Args:
+        flow_src, depth_src: the sources. vo: the odometry (its state continues). K: (3,3) working-size intrinsics.
+        refine: photometric refinement of the flow (None: none). timer: stage times. device: where tensors live.
+        finetuner: optional online flow finetuner.
+    """
+
+    def __init__(self, flow_src: FlowSource, depth_src: DepthSource, vo: VisualOdometry, K: torch.Tensor, *,
+                 refine: FlowRefinementConfig | None, timer: StageTimer, device: str = "cpu",
+                 finetuner: object | None = None) -> None:
+        self.flow_src, self.depth_src, self.vo, self.refine = flow_src, depth_src, vo, refine
+        self.timer, self.device, self.finetuner = timer, device, finetuner
+        self.K = K.to(device).reshape(1, 3, 3)
+        self.reset()
+
+    def reset(self) -> None:
+        """Start a new sequence (the next frame is frame 0; the tracker forgets its state)."""
+        self.vo.reset()
+        self.index = -1
+        self.prev: torch.Tensor | None = None
+        self.depth_carry: torch.Tensor | None = None
+
+    def push(self, image: torch.Tensor) -> FrameRecord | None:
+        """Track frame ``image`` (3,H,W) float [0,1] at the working size: its :class:`FrameRecord` (None for the
+        first frame, whose pose is the identity)."""
+        img = image.to(self.device)[None]
+        self.index += 1
+        if self.prev is None:
+            self.prev = img
+            return None
+        imgs = torch.cat([self.prev, img])
+        self.prev = img
+        work, self.depth_carry = _pair_stage(imgs, [self.index - 1], self.flow_src, self.depth_src, self.timer,
+                                             _two_views(self.vo), self.depth_carry, self.finetuner)
+        _refine_stage(work, self.refine, self.timer)
+        return next(_records(work, _track_stage(work, self.vo, self.K, self.timer)))
+
+
 def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSource, vo: VisualOdometry, *,
                    refine: FlowRefinementConfig | None, batch_size: int, timer: StageTimer, device: str = "cpu",
                    finetuner: object | None = None,
@@ -145,7 +246,7 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
     """
     mode = _overlap_mode(overlap)
     K = seq.K.to(device)[None]
-    two_views = vo.cfg.scale.depth_views == 2 and vo.cfg.mode != TrackerMode.pnp
+    two_views = _two_views(vo)
     batches = _batches(seq.length, batch_size)
     frames = [[i + 1 for i in idx] for idx in batches]
     frames[0] = [0] + frames[0]
@@ -158,73 +259,35 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
     if mode == OverlapMode.full and not cuda:  # two busy threads share the cores: half of the torch threads each
         torch.set_num_threads(max(1, threads // 2))
 
-    def refine_flows(work: _Batch) -> None:
-        if refine is None:
-            return
-        with timer("refine"):  # only this thread refines: last["refine"] is this call's
-            work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
-        work.share["t_refine"] = timer.last["refine"] / len(work.idx)
-
     def track(work: _Batch) -> tuple[_Batch, list[FrameResult]]:
         if mode == OverlapMode.full:  # the refinement runs in the tracker thread, beside the next batch's networks
-            refine_flows(work)
-        n = len(work.idx)
-        with timer("tracker"):  # only this thread tracks: last["tracker"] is this call's
-            results = vo.run(work.flow_fwd, work.flow_bwd, work.depth, K.expand(n, 3, 3), batch_size=n,
-                             depths_next=work.depth_next)
-        for part in ("selection", "e_tracker", "sequential"):  # the tracker's own split of its time
-            timer.add(f"tracker_{part}", sum(getattr(r.diagnostics, f"time_{part}", 0.0) for r in results))
-        work.share["t_tracker"] = timer.last["tracker"] / n
-        return work, results
-
-    def records(work: _Batch, results: list[FrameResult]) -> Iterator[FrameRecord]:
-        for k, (i, res) in enumerate(zip(work.idx, results, strict=True)):
-            yield FrameRecord(i + 1, work.imgs[k], work.imgs[k + 1], work.flow_fwd[k], work.flow_bwd[k],
-                              work.depth[k], res, work.share,
-                              None if work.depth_next is None else work.depth_next[k])
+            _refine_stage(work, refine, timer)
+        return work, _track_stage(work, vo, K, timer)
 
     depth_carry: torch.Tensor | None = None  # depth of the first frame of the next batch (= this batch's last)
     prev_img: torch.Tensor | None = None
     pending: Future | None = None
     try:
         for b, idx in enumerate(batches):
-            n = len(idx)
             loaded = loader.get(b).to(device, non_blocking=True)
             imgs = loaded if prev_img is None else torch.cat([prev_img, loaded])
             prev_img = imgs[-1:]
-            if finetuner is not None and finetuner.active:
-                with timer("finetune"):
-                    for k in range(n):
-                        finetuner.step(*flow_src.network_inputs(imgs[k:k + 1], imgs[k + 1:k + 2]))
-            with timer("flow"):
-                flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)
-            with timer("depth"):
-                depth_next = None
-                if two_views:
-                    later = depth_src(imgs[1:], [i + 1 for i in idx])
-                    first_depth = depth_src(imgs[:1], idx[:1]) if depth_carry is None else depth_carry
-                    depth = torch.cat([first_depth, later[:-1]])
-                    depth_next, depth_carry = later, later[-1:]
-                else:
-                    depth = depth_src(imgs[:-1], idx)
-            share = {"t_flow": timer.last["flow"] / n, "t_refine": 0.0, "t_depth": timer.last["depth"] / n,
-                     "t_tracker": 0.0}
-            work = _Batch(idx, imgs, flow_fwd, flow_bwd, depth, depth_next, share)
+            work, depth_carry = _pair_stage(imgs, idx, flow_src, depth_src, timer, two_views, depth_carry, finetuner)
             if tracker_pool is None:
-                refine_flows(work)
-                yield from records(*track(work))
+                _refine_stage(work, refine, timer)
+                yield from _records(*track(work))
                 continue
             if pending is not None:
                 with timer("wait_tracker"):
                     done = pending.result()
                 pending = None
-                yield from records(*done)
+                yield from _records(*done)
             pending = tracker_pool.submit(track, work)
         if pending is not None:
             with timer("wait_tracker"):
                 done = pending.result()
             pending = None
-            yield from records(*done)
+            yield from _records(*done)
     finally:
         loader.close()
         if tracker_pool is not None:

@@ -3,7 +3,9 @@
 - ``SEQ.txt``: the trajectory, one line per input frame, flushed per line (KITTI or TUM format:
   :class:`dfvo.io.trajectory.TrajectoryWriter`).
 - ``frames.csv``: one row per frame (frame 0 is the reference, tracker ``init``): the fields of
-  :class:`~dfvo.tracking.diagnostics.FrameDiagnostics` and the seconds per stage.
+  :class:`~dfvo.tracking.diagnostics.FrameDiagnostics`, the seconds per stage and the 21 upper-triangle entries of
+  the step's 6x6 covariance (``cov_rx_rx`` ... ``cov_tz_tz``, :mod:`dfvo.tracking.covariance`; empty on frame 0);
+  a live stream adds its own columns (``stream_frame``, ``dropped_before``, ``timestamp``).
 - ``metrics.json``, ``summary.json``, the plots: at the end (:mod:`dfvo.inference.report`).
 """
 
@@ -16,12 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from dfvo.inference.config import InferConfig
+from dfvo.tracking.covariance import COVARIANCE_FIELDS
 from dfvo.tracking.diagnostics import DIAGNOSTIC_FIELDS, FrameDiagnostics
 
 __all__ = ["prepare_out_dir", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary"]
 
 STAGE_FIELDS = ["t_flow", "t_refine", "t_depth", "t_tracker"]
-CSV_FIELDS = [f for f in DIAGNOSTIC_FIELDS if not f.startswith("time_")] + STAGE_FIELDS
+CSV_FIELDS = [f for f in DIAGNOSTIC_FIELDS if not f.startswith("time_")] + STAGE_FIELDS + COVARIANCE_FIELDS
 
 
 def prepare_out_dir(out_dir: Any) -> Path:
@@ -62,19 +65,22 @@ def _fmt(v: Any) -> Any:
 
 
 class FramesCsv:
-    """Per-frame diagnostics, one flushed CSV row per frame (columns :data:`CSV_FIELDS`)."""
+    """Per-frame diagnostics, one flushed CSV row per frame (columns :data:`CSV_FIELDS`, then ``extra_fields``)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, extra_fields: list[str] | tuple[str, ...] = ()) -> None:
         self.path = Path(path)
+        self.fields = CSV_FIELDS + [f for f in extra_fields if f not in CSV_FIELDS]
         self._f = self.path.open("w", newline="")
-        self._w = csv.DictWriter(self._f, fieldnames=CSV_FIELDS, extrasaction="ignore")
+        self._w = csv.DictWriter(self._f, fieldnames=self.fields, extrasaction="ignore")
         self._w.writeheader()
         self._f.flush()
 
-    def write(self, diagnostics: FrameDiagnostics, stage_seconds: dict[str, float] | None = None) -> None:
-        """One row: the frame's diagnostics and its seconds per stage (``t_flow``, ...)."""
-        row = {**diagnostics.as_row(), **(stage_seconds or {})}
-        self._w.writerow({k: _fmt(row.get(k)) for k in CSV_FIELDS})
+    def write(self, diagnostics: FrameDiagnostics, stage_seconds: dict[str, float] | None = None,
+              extra: dict[str, Any] | None = None) -> None:
+        """One row: the frame's diagnostics, its seconds per stage (``t_flow``, ...) and ``extra`` columns (the
+        covariance's, a stream's)."""
+        row = {**diagnostics.as_row(), **(stage_seconds or {}), **(extra or {})}
+        self._w.writerow({k: _fmt(row.get(k)) for k in self.fields})
         self._f.flush()
 
     def close(self) -> None:

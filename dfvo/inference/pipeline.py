@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import signal
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ from dfvo.inference.timing import StageTimer
 from dfvo.io.trajectory import TrajectoryWriter
 from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, check_sources
 from dfvo.tracking import VisualOdometry
+from dfvo.tracking.covariance import covariance_to_row
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.training.online_flow import OnlineFlowFinetuner
 from dfvo.validation import typed
@@ -110,26 +111,49 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
     if icfg.num_threads:
         torch.set_num_threads(int(icfg.num_threads))
     device = resolve_device(icfg.device)
-    seq = build_sequence(typed(icfg.data) if isinstance(icfg.data, DictConfig) else icfg.data, icfg.seq,
-                         icfg.img_res)
+    data = typed(icfg.data) if isinstance(icfg.data, DictConfig) else icfg.data
+    if data.kind == "stream":  # a live source: frames as they arrive (dfvo.inference.live)
+        from dfvo.inference.live import run_live
+
+        return run_live(icfg, data, out, device)
+    seq = build_sequence(data, icfg.seq, icfg.img_res)
     if seq.length < 2:
         raise ValueError(f"sequence {seq.name} has {seq.length} frame(s); expected at least 2")
-    check_sources(icfg.flow, icfg.depth, seq.world)  # every missing checkpoint in one error, before loading any
-    flow_src = build_flow_source(icfg.flow, seq.world, device)
-    depth_src = build_depth_source(icfg.depth, seq.world, device)
+    src = build_sources(icfg, seq.world, device)
+    observers = _observers(icfg, out, seq)
+    return _run(icfg, seq, src.flow, src.depth, src.refine, src.finetuner, observers, out, device, src.extra)
+
+
+@dataclass
+class Sources:
+    """What turns frames into flows and depths: the sources, the flow refinement (None: none), the online
+    finetuner (None: none) and what ``summary.json`` says about them (``extra``)."""
+
+    flow: Any
+    depth: Any
+    refine: Any
+    finetuner: Any
+    extra: dict[str, Any]
+
+
+def build_sources(icfg: InferConfig, world: Any, device: str) -> Sources:
+    """The flow and depth sources of ``icfg`` (``world``: the synthetic world for oracle sources, else None), every
+    missing checkpoint reported at once before any is loaded."""
+    check_sources(icfg.flow, icfg.depth, world)
+    flow_src = build_flow_source(icfg.flow, world, device)
+    depth_src = build_depth_source(icfg.depth, world, device)
     refine = icfg.flow.refine if isinstance(flow_src, NetworkFlow) and icfg.flow.refine.iterations > 0 else None
     finetuner = None
     if icfg.online_finetune:
         if not isinstance(flow_src, NetworkFlow):
             raise ValueError(f"online_finetune=true needs flow=network (flow={flow_src.name} cannot be finetuned)")
         finetuner = OnlineFlowFinetuner(flow_src.model, icfg.online)
-    observers = _observers(icfg, out, seq)
     extra = {"sources": {"flow": flow_src.name, "depth": depth_src.name,
                          "flow_checkpoint": str(getattr(flow_src, "checkpoint", "")) or None,
                          "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None,
                          "flow_refinement": None if refine is None else asdict(refine)},
              "online_finetune": finetuner is not None, "device": device}
-    return _run(icfg, seq, flow_src, depth_src, refine, finetuner, observers, out, device, extra)
+    return Sources(flow_src, depth_src, refine, finetuner, extra)
 
 
 def _observers(cfg: InferConfig, out: Path, seq: Any) -> list[Any]:
@@ -140,7 +164,34 @@ def _observers(cfg: InferConfig, out: Path, seq: Any) -> list[Any]:
         observers.append(RerunObserver(out / "run.rrd", seq.K, hw, gt_poses=seq.poses, spawn=cfg.viewer.spawn))
     if cfg.tensorboard.enabled:
         observers.append(TensorboardObserver(out / "tensorboard", cfg.tensorboard.every))
+    if cfg.output.rosbag:
+        observers.append(BagObserver(cfg, out, seq.poses, _stamp(seq, 0)))
     return observers
+
+
+class BagObserver:
+    """``output.rosbag=true``: every frame into the ROS 2 bag ``OUT/bag/`` (:class:`dfvo.io.rosbag.OdometryBagWriter`;
+    frame 0 at once, at ``first_stamp``). A bag left in ``OUT/bag/`` by an earlier run is replaced."""
+
+    def __init__(self, cfg: InferConfig, out: Path, ground_truth: np.ndarray | None, first_stamp: float | None) -> None:
+        import shutil
+
+        from dfvo.io.rosbag import OdometryBagWriter, import_rosbags
+
+        import_rosbags()  # a missing extra fails before the old bag is removed
+        path = out / "bag"
+        if path.is_dir() and ((path / "metadata.yaml").exists() or any(path.glob("*.db3"))):
+            log.info("output.rosbag: replacing the bag of an earlier run in %s", path)
+            shutil.rmtree(path)
+        self.writer = OdometryBagWriter(path, cfg.output.ros_world_frame, cfg.output.ros_camera_frame, ground_truth)
+        self.writer.write(0, np.eye(4), None, first_stamp)
+
+    def on_frame(self, record: FrameRecord) -> None:
+        self.writer.write(record.index, record.result.T_w_cur.detach().cpu().double().numpy(),
+                          record.result.covariance, record.timestamp)
+
+    def close(self) -> None:
+        self.writer.close()
 
 
 def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any, finetuner: Any,
@@ -195,10 +246,14 @@ def _stamp(seq: Any, index: int) -> float | None:
 
 
 def _write_frame(record: FrameRecord, poses: TrajectoryWriter, table: FramesCsv, trajectory: list[np.ndarray],
-                 diagnostics: list[FrameDiagnostics], observers: list[Any], timestamp: float | None) -> None:
+                 diagnostics: list[FrameDiagnostics], observers: list[Any], timestamp: float | None,
+                 extra: dict[str, Any] | None = None) -> None:
+    """Write one tracked frame everywhere (trajectory line, frames.csv row with its covariance, observers)."""
     T_w = record.result.T_w_cur.detach().cpu().double().numpy()
+    record.timestamp = timestamp
     poses.write(T_w, timestamp)
-    table.write(record.result.diagnostics, record.stage_seconds)
+    table.write(record.result.diagnostics, record.stage_seconds,
+                {**covariance_to_row(record.result.covariance), **(extra or {})})
     trajectory.append(T_w)
     diagnostics.append(record.result.diagnostics)
     for obs in observers:

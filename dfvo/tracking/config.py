@@ -26,7 +26,7 @@ from dfvo.validation import check, choice
 
 __all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "RoadPoints", "SelectionConfig",
            "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "ScaleFilterConfig",
-           "GateConfig", "PnPConfig", "TrackerConfig"]
+           "GateConfig", "PnPConfig", "CovarianceConfig", "TrackerConfig"]
 
 
 class TrackerMode(StrEnum):
@@ -281,6 +281,35 @@ class GateConfig:
 
 
 @dataclass
+class CovarianceConfig:
+    """Per-frame covariance of the relative step (``tracker.covariance``; :mod:`dfvo.tracking.covariance`).
+
+    Attributes:
+        inflation: factor on the part of the E and PnP covariances that comes from the normal equations (pixel
+            noise; not the length's variance from the scale filter). 1: the normal equations as they are, consistent
+            on the synthetic world with independent pixel noise (``tests/tracking/test_covariance.py``). Real flow
+            errors are correlated between neighbouring pixels, which shrinks the effective number of
+            correspondences: the default 160 is calibrated on KITTI 07 with the shipped networks (rotation NEES
+            3.0 there; checked on KITTI 06: median 6-DoF NEES 5.2, ``docs/robots.md``). Use 1 with exact flow plus
+            independent noise (the synthetic world's oracle).
+        constant_motion_rot_std: rotation std (rad, per axis) of a constant-motion frame (the previous motion
+            repeated): 0.1 rad = 5.7 degrees.
+        constant_motion_trans_std: translation std (m, per axis) of a constant-motion frame, or the step's length
+            when that is larger.
+    """
+
+    inflation: float = 160.0
+    constant_motion_rot_std: float = 0.1
+    constant_motion_trans_std: float = 1.0
+
+    def __post_init__(self) -> None:
+        check(self.inflation > 0 and self.constant_motion_rot_std > 0 and self.constant_motion_trans_std > 0,
+              f"tracker.covariance: inflation={self.inflation}, constant_motion_rot_std="
+              f"{self.constant_motion_rot_std}, constant_motion_trans_std={self.constant_motion_trans_std}; "
+              "expected positive values")
+
+
+@dataclass
 class TrackerConfig:
     """Every setting of the odometry loop (:class:`dfvo.tracking.VisualOdometry`).
 
@@ -288,7 +317,7 @@ class TrackerConfig:
         mode: see :class:`TrackerMode`.
         seed: frame k of a sequence draws its random samples from ``torch.Generator().manual_seed(seed + k)``.
         correspondence, essential, model_selection, scale, road_plane, scale_filter, gate, pnp: the stages'
-            sections.
+            sections. covariance: the per-frame covariance of the step.
     """
 
     mode: TrackerMode = TrackerMode.hybrid
@@ -301,6 +330,7 @@ class TrackerConfig:
     scale_filter: ScaleFilterConfig = field(default_factory=ScaleFilterConfig)
     gate: GateConfig = field(default_factory=GateConfig)
     pnp: PnPConfig = field(default_factory=PnPConfig)
+    covariance: CovarianceConfig = field(default_factory=CovarianceConfig)
 
     def __post_init__(self) -> None:
         self.mode = choice(TrackerMode, self.mode, "tracker.mode")

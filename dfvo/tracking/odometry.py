@@ -40,6 +40,7 @@ from dfvo.geometry.two_view import decompose_essential, find_essential_ransac
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.selection import select_correspondences
 from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
+from dfvo.tracking.covariance import length_log_variance, step_covariance
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.e_tracker import ETrackerResult, essential_scale, track_essential
 from dfvo.tracking.gates import check_direction, check_length, check_support, image_parallax_px
@@ -63,13 +64,15 @@ class FrameMatches:
 
 @dataclass
 class FrameResult:
-    """One tracked frame: ``T_w_cur`` (4,4), ``T_prev_cur`` (4,4) float64, its :class:`FrameDiagnostics` and the
-    :class:`FrameMatches` it used."""
+    """One tracked frame: ``T_w_cur`` (4,4), ``T_prev_cur`` (4,4) float64, its :class:`FrameDiagnostics`, the
+    :class:`FrameMatches` it used and ``covariance`` (6,6) float64 of ``T_prev_cur``'s error (order and frame:
+    :mod:`dfvo.tracking.covariance`)."""
 
     T_w_cur: torch.Tensor
     T_prev_cur: torch.Tensor
     diagnostics: FrameDiagnostics
     matches: FrameMatches | None = None
+    covariance: torch.Tensor | None = None
 
 
 @dataclass
@@ -259,7 +262,10 @@ class VisualOdometry:
             self.fusion.forget_motion()
         inliers = e_res.inliers[0][rows] if used_e else None
         matches = FrameMatches(st.pts_prev[0][rows], st.pts_cur[0][rows], inliers)
-        return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches)
+        log_var = length_log_variance(st.estimate, self.fusion._prior.pxx, self.last_scale, cfg)
+        cov = step_covariance(diag.tracker, T_cur_prev, T_prev_cur, matches.pts_prev, matches.pts_cur, st.K[0],
+                              st.depth, cfg, log_var)
+        return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches, cov)
 
     def _essential_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
         """The E-tracker's pose ``T_cur_prev`` (4,4) with its scale (iterative scale, fusion, gates), or None and

@@ -1,0 +1,259 @@
+"""``data=stream``: a live H.264/MPEG-TS stream served on loopback by the test itself (frames of the synthetic world),
+tracked by ``infer.py`` as it arrives: frames in, poses out, dropped frames counted, outputs complete when the stream
+ends, is cut or stalls; a growing file followed; bad sources in one line."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dfvo.synthetic import SyntheticWorld
+
+av = pytest.importorskip("av", reason="data=stream needs PyAV (the video extra)")
+
+REPO = Path(__file__).resolve().parents[2]
+H, W = 96, 320
+SMALL = [f"img_res.width={W}", "num_threads=1"]
+needs_checkpoints = pytest.mark.skipif(not (REPO / "dfvo/checkpoints/flow.safetensors").is_file(),
+                                       reason="no shipped checkpoints in dfvo/checkpoints")
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[np.ndarray]:
+    world = SyntheticWorld(seed=0, num_frames=12, height=H, width=W)
+    return [(world.image(k).permute(1, 2, 0).numpy() * 255).round().astype(np.uint8) for k in range(12)]
+
+
+@pytest.fixture(scope="module")
+def intrinsics() -> list[str]:
+    K = SyntheticWorld(seed=0, num_frames=2, height=H, width=W).intrinsics().double().numpy()
+    return [f"data.fx={K[0, 0]:.9g}", f"data.fy={K[1, 1]:.9g}", f"data.cx={K[0, 2]:.9g}", f"data.cy={K[1, 2]:.9g}"]
+
+
+def encode(sink: object, frames: list[np.ndarray], after_frame: object = None, period_s: float = 0.0) -> None:
+    """H.264 (x264, zero latency) in MPEG-TS into the file object ``sink``; ``after_frame(k)`` runs after frame k
+    is sent and returns False to stop there without an end (a cut)."""
+    out = av.open(sink, "w", format="mpegts", options={"flush_packets": "1"})
+    stream = out.add_stream("libx264", rate=10)
+    stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+    stream.options = {"tune": "zerolatency", "preset": "ultrafast", "crf": "12"}
+    for k, img in enumerate(frames):
+        frame = av.VideoFrame.from_ndarray(img, format="rgb24")
+        frame.pts = k
+        for packet in stream.encode(frame):
+            out.mux(packet)
+        sink.flush()
+        if after_frame is not None and after_frame(k) is False:
+            return
+        time.sleep(period_s)
+    for packet in stream.encode():
+        out.mux(packet)
+    out.close()
+
+
+class LoopbackServer:
+    """Serves ``frames`` to the first TCP client on 127.0.0.1 (``url``) from a thread: ``mode`` ``end`` (all, then a
+    proper end), ``cut`` (the connection closed after ``at`` frames) or ``stall`` (``at`` frames, then silence for
+    ``stall_s`` seconds, then closed)."""
+
+    def __init__(self, frames: list[np.ndarray], mode: str = "end", at: int = 5, stall_s: float = 20.0) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(1)
+        self.url = f"tcp://127.0.0.1:{self.sock.getsockname()[1]}"
+        self.frames, self.mode, self.at, self.stall_s = frames, mode, at, stall_s
+        self.sent = 0
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        self.sock.settimeout(120)
+        conn, _ = self.sock.accept()
+        sink = conn.makefile("wb")
+
+        def after(k: int) -> bool:
+            self.sent = k + 1
+            if self.mode != "end" and k + 1 == self.at:
+                if self.mode == "stall":
+                    time.sleep(self.stall_s)
+                return False
+            return True
+
+        try:
+            encode(sink, self.frames, after)
+        except OSError:  # the client went away first
+            pass
+        finally:
+            try:
+                sink.close()
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+            conn.close()
+            self.sock.close()
+
+
+def run_infer(tmp_path: Path, *args: str, timeout: float = 600) -> tuple[subprocess.CompletedProcess, Path]:
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, str(REPO / "infer.py"), "data=stream", f"out_dir={out}", "progress=false",
+                           *SMALL, *args], cwd=tmp_path, capture_output=True, text=True, timeout=timeout,
+                          env=dict(os.environ, OMP_NUM_THREADS="1"))
+    return proc, out
+
+
+def check_outputs(out: Path, name: str = "stream") -> tuple[dict, list[dict], np.ndarray]:
+    """summary.json, frames.csv rows and the poses; one row and one pose per tracked frame, finite poses."""
+    summary = json.loads((out / "summary.json").read_text())
+    rows = list(csv.DictReader((out / "frames.csv").open()))
+    poses = np.loadtxt(out / f"{name}.txt", ndmin=2)
+    n = summary["stream"]["frames_tracked"]
+    assert len(rows) == n == len(poses) == summary["frames_written"]
+    assert np.isfinite(poses).all() and [int(r["frame"]) for r in rows] == list(range(n))
+    assert all(r["tracker"] in ("E", "PnP", "constant_motion") for r in rows[1:])
+    assert all(r["cov_tz_tz"] for r in rows[1:])  # every tracked frame carries its covariance
+    assert (out / "trajectory.png").is_file()
+    return summary, rows, poses
+
+
+@needs_checkpoints
+def test_realtime_stream_keeps_the_latest_frame_and_counts_the_dropped(frames, intrinsics, tmp_path: Path) -> None:
+    """12 frames sent at once while the networks are still loading: real-time mode tracks the latest frame each time
+    and counts every frame it skipped, per frame (dropped_before) and in summary.json."""
+    server = LoopbackServer(frames)
+    proc, out = run_infer(tmp_path, f"data.url={server.url}", *intrinsics)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary, rows, _ = check_outputs(out)
+    stream = summary["stream"]
+    assert stream["frames_received"] == len(frames) and stream["ended_by"] == "end"
+    assert stream["frames_dropped"] >= 1
+    assert stream["frames_tracked"] + stream["frames_dropped"] == stream["frames_received"]
+    assert sum(int(r["dropped_before"]) for r in rows) == stream["frames_dropped"]
+    assert [int(r["stream_frame"]) for r in rows] == sorted(int(r["stream_frame"]) for r in rows)
+    assert int(rows[-1]["stream_frame"]) == len(frames) - 1  # the latest frame is never dropped
+    assert float(rows[1]["timestamp"]) > float(rows[0]["timestamp"])
+    said = [ln for ln in (proc.stdout + proc.stderr).splitlines() if f"stream {server.url}: end;" in ln]
+    assert len(said) == 1 and f"{stream['frames_dropped']} dropped" in said[0]
+
+
+@needs_checkpoints
+@pytest.mark.slow  # the reader's own test covers handing out every frame; this is the whole run
+def test_every_frame_when_not_realtime_and_the_poses_follow_the_drive(frames, intrinsics, tmp_path: Path) -> None:
+    """``data.realtime=false``: every frame of the stream is tracked (none dropped), and the trajectory moves forward
+    like the world's (the frames went through H.264, so the comparison is loose)."""
+    server = LoopbackServer(frames)
+    proc, out = run_infer(tmp_path, f"data.url={server.url}", "data.realtime=false", "pose_format=tum", *intrinsics)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary, rows, poses = check_outputs(out)
+    assert summary["stream"]["frames_tracked"] == len(frames) and summary["stream"]["frames_dropped"] == 0
+    assert np.allclose(poses[:, 0], np.arange(len(frames)) * 0.1, atol=1e-6)  # TUM time column: the stream's pts
+    world = SyntheticWorld(seed=0, num_frames=12, height=H, width=W).poses().double().numpy()
+    true_z = (np.linalg.inv(world[0]) @ world[-1])[2, 3]
+    assert poses[-1, 3] == pytest.approx(true_z, rel=0.35)  # z forward: metres driven, within the networks' error
+
+
+@needs_checkpoints
+@pytest.mark.parametrize("mode", ["cut", "stall"])
+def test_a_cut_or_stalled_stream_ends_with_one_line_and_complete_outputs(frames, intrinsics, tmp_path: Path,
+                                                                         mode: str) -> None:
+    """The server stops after 5 frames: closing the connection (cut) or going silent (stall, longer than
+    ``data.timeout_s``). The run ends with exit status 0, one line saying how the source ended, and outputs for
+    the 5 frames."""
+    server = LoopbackServer(frames, mode=mode, at=5, stall_s=30.0)
+    proc, out = run_infer(tmp_path, f"data.url={server.url}", "data.realtime=false", "data.timeout_s=3", *intrinsics)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary, rows, _ = check_outputs(out)
+    stream = summary["stream"]
+    assert stream["frames_tracked"] == 5 and stream["frames_received"] == 5
+    assert stream["ended_by"] == ("end" if mode == "cut" else "stalled")
+    lines = [ln for ln in (proc.stdout + proc.stderr).splitlines() if f"stream {server.url}" in ln]
+    assert len(lines) == 1 and "5 frames tracked" in lines[0], proc.stdout[-2000:]
+    assert (mode == "stall") == ("WARNING" in lines[0] and "no data for 3 s" in lines[0])
+
+
+@needs_checkpoints
+@pytest.mark.slow
+def test_a_growing_file_is_followed_until_it_stops_growing(frames, intrinsics, tmp_path: Path) -> None:
+    """A recording still being written (MPEG-TS appended frame by frame): every frame written is tracked, and the
+    run ends ``data.timeout_s`` after the file stopped growing."""
+    path = tmp_path / "recording.ts"
+    first = frames[:6]
+    sink = path.open("wb")  # exists (empty) when the run starts, grows while infer.py reads it
+
+    def write() -> None:
+        time.sleep(1.0)
+        encode(sink, first, period_s=0.3)
+        sink.close()
+
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    proc, out = run_infer(tmp_path, f"data.url={path}", "data.realtime=false", "data.timeout_s=4", *intrinsics)
+    writer.join()
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary, _, _ = check_outputs(out)
+    assert summary["stream"]["frames_tracked"] == len(first)
+
+
+def test_a_source_that_cannot_be_opened_is_one_line(tmp_path: Path) -> None:
+    """Nobody listening: infer.py ends with one line on stderr naming data.url (before loading any network); a
+    missing camera device and a missing url are one line too."""
+    from dfvo.data.image_io import DatasetError
+    from dfvo.data.stream import StreamReader
+
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    sock.close()  # nobody listens there
+    proc, _ = run_infer(tmp_path, f"data.url=tcp://127.0.0.1:{port}", "data.fx=100", "data.fy=100", "data.cx=160",
+                        "data.cy=48", "data.timeout_s=2", timeout=120)
+    assert proc.returncode == 1
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"dfvo-infer: error: data.url=tcp://127.0.0.1:{port}: cannot open "
+                                                   "the stream"), proc.stderr
+    with pytest.raises(DatasetError, match="^data.url=/dev/video77: no such camera device /dev/video77$"):
+        StreamReader("/dev/video77").open()
+    with pytest.raises(DatasetError, match="^data.url=77: no such camera device /dev/video77$"):
+        StreamReader("77").open()
+    with pytest.raises(ValueError, match="^data=stream needs data.url="):
+        StreamReader(None)
+
+
+def test_a_missing_extra_is_named_in_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    from dfvo.data.stream import STREAM_HINT, StreamReader
+
+    monkeypatch.setitem(sys.modules, "av", None)  # import av raises ImportError
+    with pytest.raises(ImportError, match=r"^data=stream needs PyAV: pip install \"dfvo\[video\]\"$"):
+        StreamReader("tcp://127.0.0.1:1").open()
+    assert "dfvo[video]" in STREAM_HINT
+
+
+def test_realtime_reader_drops_all_but_the_latest_frame() -> None:
+    """The reader alone on a local file decoded faster than it is consumed: real time hands out the latest frame and
+    counts the others; not real time hands out every frame."""
+    import tempfile
+
+    imgs = [np.full((H, W, 3), 10 * k, np.uint8) for k in range(10)]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "clip.ts"
+        with path.open("wb") as sink:
+            encode(sink, imgs)
+        from dfvo.data.stream import StreamReader
+
+        every = StreamReader(str(path), realtime=False, timeout_s=1.0)
+        got = [f.index for f in every]
+        every.close()
+        assert got == list(range(10)) and every.dropped == 0
+        latest = StreamReader(str(path), realtime=True, timeout_s=1.0).start()
+        time.sleep(1.5)  # everything decoded meanwhile
+        first = next(iter(latest))
+        latest.close()
+        assert first.index == 9 and first.dropped_before == 9 and latest.dropped == 9
