@@ -187,13 +187,21 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(config_path="pkg://dfvo.conf.evaluate", config_name="evaluate", version_base="1.3")
-def main(cfg: DictConfig) -> dict:
-    """The command: :func:`run`, with bad input reported as one ``error:`` line and exit status 2."""
+def evaluate_app(cfg: DictConfig) -> dict:
+    """The Hydra task: :func:`run`, with bad input reported as one ``error:`` line and exit status 2."""
     try:
         return run(cfg)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+
+
+def main() -> None:
+    """Entry point of ``dfvo-eval`` and ``python -m dfvo.evaluate``: :func:`evaluate_app`, with a config Hydra cannot
+    compose (an unknown key: the closest valid one; a missing quote) also one ``error:`` line, exit status 2."""
+    from dfvo.cli.errors import run_reporting_errors
+
+    run_reporting_errors(None, evaluate_app, None, exit_code=2)
 
 
 if __name__ == "__main__":
