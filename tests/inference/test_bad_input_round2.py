@@ -181,17 +181,56 @@ def test_lock_of_a_dead_run_does_not_block(tmp_path: Path) -> None:
     assert not (out / ".dfvo.lock").exists()
 
 
-@needs_checkpoints
-def test_rerun_into_an_out_dir_leaves_nothing_stale(infer_cli, frames_io, tmp_path: Path) -> None:
-    """A rerun into an existing out_dir replaces the earlier run's outputs: the same command twice gives the second
-    run's complete files (not appended); a run without ground truth after one with it leaves no metrics.json and
-    no pose file of the earlier sequence; Hydra's infer.log keeps both runs' lines."""
-    n, out = 4, tmp_path / "out"
+def test_rerun_into_an_out_dir_replaces_the_earlier_outputs(infer_cli, frames_io, tmp_path: Path) -> None:
+    """A rerun into an existing out_dir: the same command twice gives the second run's complete files, and a run
+    of another sequence leaves no pose file of the earlier one beside its own (removed first, logged)."""
+    n, out = 5, tmp_path / "out"
     for _ in range(2):
         infer_cli(f"out_dir={out}", f"data.num_frames={n}", *SMALL, *ORACLE)
         assert frames_io.read_kitti(out / POSES).shape == (n, 4, 4)
-        assert len(list(csv.DictReader((out / "frames.csv").open()))) == n
+        assert [int(r["frame"]) for r in csv.DictReader((out / "frames.csv").open())] == list(range(n))
     assert json.loads((out / "metrics.json").read_text())["num_frames"] == n
+    infer_cli(f"out_dir={out}", "data.seq=straight", "data.num_frames=3", *SMALL, *ORACLE)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [".hydra", "frames.csv", "frames.png", "infer.log", "metrics.json", "summary.json",
+                     "synthetic_straight_s0.txt", "trajectory.png"], names
+    assert json.loads((out / "metrics.json").read_text())["sequence"] == "synthetic_straight_s0"
+    assert json.loads((out / "summary.json").read_text())["frames_written"] == 3
+    log = (out / "infer.log").read_text()
+    assert log.count(f"out_dir {out} held an earlier run's outputs; removed summary.json, metrics.json, frames.csv, "
+                     f"trajectory.png, frames.png, {POSES}") == 2, log[-3000:]
+
+
+def test_clear_previous_outputs_removes_the_runs_files_only(tmp_path: Path) -> None:
+    """What a rerun removes: the run's own outputs and the pose file the earlier summary.json names (here a stale
+    metrics.json of a run with ground truth); Hydra's infer.log, other files and pose files outside OUT stay."""
+    from dfvo.inference.outputs import clear_previous_outputs
+
+    out = tmp_path / "out"
+    (out / "tensorboard").mkdir(parents=True)
+    (out / "tensorboard" / "events").write_text("x")
+    for name in ("metrics.json", "frames.csv", "trajectory.png", "frames.png", "06.txt", "07.txt", "infer.log",
+                 "notes.md"):
+        (out / name).write_text("earlier run")
+    (tmp_path / "elsewhere.txt").write_text("not this run's folder")
+    (out / "summary.json").write_text(json.dumps({"pose_file": str(out / "06.txt")}))
+    removed = clear_previous_outputs(out)
+    assert removed == ["summary.json", "metrics.json", "frames.csv", "trajectory.png", "frames.png", "tensorboard",
+                       "06.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["07.txt", "infer.log", "notes.md"]
+    (out / "summary.json").write_text(json.dumps({"pose_file": str(tmp_path / "elsewhere.txt")}))
+    assert clear_previous_outputs(out) == ["summary.json"] and (tmp_path / "elsewhere.txt").is_file()
+    assert clear_previous_outputs(out) == []
+
+
+@pytest.mark.slow
+@needs_checkpoints
+def test_rerun_without_ground_truth_leaves_no_stale_metrics(infer_cli, frames_io, tmp_path: Path) -> None:
+    """The issue's case end to end: a run with ground truth, then a run without it (own frames, the shipped
+    networks) into the same out_dir: no metrics.json of the first run stays beside the new trajectory."""
+    out = tmp_path / "out"
+    infer_cli(f"out_dir={out}", "data.num_frames=3", *SMALL, *ORACLE)
+    assert (out / "metrics.json").is_file()
     world = SyntheticWorld(seed=3, num_frames=3, height=H, width=W, scenario="straight")
     frames = frames_io.write_frames(tmp_path / "own", [world.image(i) for i in range(3)])
     infer_cli("data=folder", f"data.root={frames}", *frames_io.intrinsics_overrides(world.intrinsics()),
@@ -201,9 +240,6 @@ def test_rerun_into_an_out_dir_leaves_nothing_stale(infer_cli, frames_io, tmp_pa
                      "trajectory.png"], names
     summary = json.loads((out / "summary.json").read_text())
     assert summary["sequence"] == "own" and summary["metrics"] is None and summary["frames_written"] == 3
-    assert [int(r["frame"]) for r in csv.DictReader((out / "frames.csv").open())] == [0, 1, 2]
-    assert f"out_dir {out} held an earlier run's outputs; removed summary.json, metrics.json, frames.csv, " \
-           f"trajectory.png, frames.png, {POSES}" in (out / "infer.log").read_text()
 
 
 FULL_DISK = textwrap.dedent('''
@@ -306,11 +342,14 @@ def test_img_res_scale_runs(infer_cli, tmp_path: Path) -> None:
      "quoted for Hydra, inside the shell's quotes: \"data.root='/data/fahrt_müller'\""),
 ], ids=["spaces", "non-ASCII"])
 def test_unquoted_path_says_how_to_quote(infer_cli, tmp_path: Path, args: list[str], hint: str) -> None:
-    """A path with spaces (split by the shell) or non-ASCII letters, unquoted: one line saying how to quote it;
-    the quoted form it gives reaches the data reader (a folder with spaces and umlauts, named in its error)."""
+    """A path with spaces (split by the shell) or non-ASCII letters, unquoted: one line saying how to quote it."""
     proc = infer_cli(*args, *SMALL, check=False)
     assert proc.returncode == 1
     assert error_line(proc) == f"dfvo-infer: error: {hint}"
+
+
+def test_quoted_path_with_spaces_and_umlauts_reaches_the_reader(infer_cli, tmp_path: Path) -> None:
+    """The quoting the hint gives works: the folder (with spaces and an umlaut) is named by the data reader."""
     folder = tmp_path / "my frames ü"
     folder.mkdir()
     proc = infer_cli("data=folder", f"data.root='{folder}'", "data.fx=200", "data.fy=200", "data.cx=160",
