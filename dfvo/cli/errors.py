@@ -9,6 +9,7 @@ command line (or ``HYDRA_FULL_ERROR=1``) shows the traceback instead.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import sys
@@ -19,18 +20,54 @@ from pathlib import Path
 from typing import NoReturn
 
 __all__ = ["EXPECTED_ERRORS", "LOG_ATTRIBUTE", "report_error", "one_line", "run_reporting_errors",
-           "argv_value", "argv_flag"]
+           "argv_value", "argv_flag", "guard_log_files", "closest_key", "quoting_hint"]
 
 # bad settings, data, checkpoints or folders, and missing optional extras: the user's to fix, not bugs
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, ImportError)
 # an exception re-raised from a multirun job carries its job's log file here (survives the launcher's pickling)
 LOG_ATTRIBUTE = "dfvo_log_file"
+QUOTES = "'\""
 _NOISE = ("to append to your config", "full_key:", "reference_type=", "object_type=", "config search path",
           "provider=", "set the environment variable hydra_full_error")
 
 
+# log files that failed to be written (a full disk): path -> reason; their handlers are detached
+_FAILED_LOGS: dict[str, str] = {}
+
+
 def _log_files() -> list[Path]:
     return [Path(h.baseFilename) for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
+
+
+def guard_log_files() -> None:
+    """Make the root logger's log files fail quietly and once: a record that cannot be written (a full disk, a
+    quota) detaches its file handler instead of printing logging's ``--- Logging error ---`` traceback for every
+    record; the failure is named in the error line of :func:`report_error`. Call it once logging is configured
+    (inside the Hydra task)."""
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler) and not getattr(handler, "_dfvo_guarded", False):
+            handler._dfvo_guarded = True  # type: ignore[attr-defined]
+            handler.handleError = functools.partial(_log_failed, handler)  # type: ignore[method-assign]
+
+
+def _log_failed(handler: logging.FileHandler, record: logging.LogRecord) -> None:
+    err = sys.exc_info()[1]
+    reason = getattr(err, "strerror", None) or str(err) or type(err).__name__
+    _FAILED_LOGS.setdefault(handler.baseFilename, reason)
+    logging.getLogger().removeHandler(handler)
+    try:
+        handler.close()
+    except Exception:  # noqa: BLE001 - its flush fails the same way; the handler is gone either way
+        pass
+
+
+def _where_logged(logs: list[Path]) -> str:
+    if logs:
+        return f" [log: {logs[0]}]"
+    if _FAILED_LOGS:
+        path, reason = next(iter(_FAILED_LOGS.items()))
+        return f" [log: {path} could not be written: {reason}]"
+    return ""
 
 
 def report_error(tool: str, message: str, exc: BaseException | None = None, exit_code: int = 1) -> NoReturn:
@@ -42,7 +79,7 @@ def report_error(tool: str, message: str, exc: BaseException | None = None, exit
     logs = _log_files()
     record = logging.LogRecord("dfvo", logging.ERROR, __file__, 0, "%s", (message,),
                                (type(exc), exc, exc.__traceback__) if exc is not None else None)
-    for handler in logging.getLogger().handlers:
+    for handler in list(logging.getLogger().handlers):  # a failing (guarded) handler removes itself
         if isinstance(handler, logging.FileHandler):
             handler.handle(record)
     if exc is not None and _in_multirun():
@@ -50,7 +87,7 @@ def report_error(tool: str, message: str, exc: BaseException | None = None, exit
             setattr(exc, LOG_ATTRIBUTE, str(logs[0]))
         raise exc
     text = message.strip() or (type(exc).__name__ if exc is not None else "failed")
-    where = f" [log: {logs[0]}]" if logs else ""
+    where = _where_logged(_log_files())
     print(f"{tool}: {'error: ' if exit_code == 1 else ''}{text}{where}", file=sys.stderr, flush=True)
     sys.exit(exit_code)
 
@@ -89,7 +126,49 @@ def one_line(exc: BaseException) -> str:
         parts.append(text.rstrip("."))
     if options is not None:
         parts[-1] += ", ".join(options)
+    closest = closest_key(exc)
+    if closest is not None:
+        parts.append(closest)
     return "; ".join(parts) or type(exc).__name__
+
+
+def closest_key(exc: BaseException) -> str | None:
+    """For an unknown config key (an OmegaConf key error, or a Hydra error caused by one): ``the closest valid key
+    is 'KEY'`` (full name), or the valid keys at that level when none is close; None for other errors."""
+    import difflib
+
+    for err in (exc, exc.__cause__, exc.__context__):
+        parent, key = getattr(err, "parent_node", None), getattr(err, "key", None)
+        if parent is None or key is None or not hasattr(parent, "keys"):
+            continue
+        valid = [str(k) for k in parent.keys() if str(k) != "hydra"]
+        if str(key) in valid:
+            continue
+        full = str(getattr(err, "full_key", None) or key)
+        prefix = full[: -len(str(key))] if full.endswith(str(key)) else ""
+        match = difflib.get_close_matches(str(key), valid, n=1, cutoff=0.6)
+        if match:
+            return f"the closest valid key is '{prefix}{match[0]}'"
+        listed = ", ".join(f"{prefix}{k}" for k in valid[:12]) + (", ..." if len(valid) > 12 else "")
+        return f"no valid key is close; valid keys there: {listed}"
+    return None
+
+
+def quoting_hint(argv: Sequence[str]) -> str | None:
+    """What went wrong with an override Hydra's lexer refused, when it is a quoting problem: a value with spaces
+    that the shell split into two words, or a value with non-ASCII letters given unquoted. None otherwise."""
+    for i, arg in enumerate(argv):
+        if arg.startswith("-"):
+            continue
+        key, sep, value = arg.partition("=")
+        if not sep and i > 0 and "=" in argv[i - 1] and not argv[i - 1].startswith("-"):
+            k, _, v = argv[i - 1].partition("=")
+            return (f"'{arg}' is not key=value: a value with spaces split by the shell? Quote the override for the "
+                    f"shell and the value for Hydra: \"{k.lstrip('+~')}='{v.strip(QUOTES)} {arg}'\"")
+        if sep and (not value.isascii() or " " in value.strip()) and value[:1] not in QUOTES:
+            return (f"{key}={value}: a value with spaces or non-ASCII letters must be quoted for Hydra, inside the "
+                    f"shell's quotes: \"{key.lstrip('+~')}='{value}'\"")
+    return None
 
 
 def argv_value(argv: Sequence[str], key: str) -> str | None:
@@ -121,8 +200,8 @@ def _write_log(path: Path, message: str, exc: BaseException) -> Path | None:
     return path
 
 
-def run_reporting_errors(tool: str, hydra_main: Callable[[], object], log_name: str,
-                         argv: Sequence[str] | None = None) -> None:
+def run_reporting_errors(tool: str | None, hydra_main: Callable[[], object], log_name: str | None,
+                         argv: Sequence[str] | None = None, exit_code: int = 1) -> None:
     """Run a ``@hydra.main`` function so that an expected error that escapes it (a config Hydra cannot compose, or a
     multirun job's error) ends with one line on stderr and exit status 1, like the errors the task itself reports.
 
@@ -131,18 +210,23 @@ def run_reporting_errors(tool: str, hydra_main: Callable[[], object], log_name: 
     goes to ``OUT/LOG_NAME`` when the command line sets ``out_dir=OUT`` (a failed run says in OUT what failed),
     or to the failed job's own log. ``verbose=true`` or a user's own ``HYDRA_FULL_ERROR`` keep the full traceback.
 
+    An unknown key names the closest valid key (:func:`closest_key`); an override Hydra's lexer refuses because
+    of a missing quote (a path with spaces or non-ASCII letters) says how to quote it (:func:`quoting_hint`).
+    This is the one home of those messages for ``dfvo-infer``, ``dfvo-train`` and ``dfvo-eval``.
+
     Args:
-        tool: the command's name for the message (``dfvo-infer``).
+        tool: the command's name for the message (``dfvo-infer``; None: the line starts with ``error:``).
         hydra_main: the decorated function (called without arguments; Hydra reads ``sys.argv``).
-        log_name: the log file's name inside ``out_dir`` (``infer.log``).
+        log_name: the log file's name inside ``out_dir`` (``infer.log``; None: no log file).
         argv: the command line (default ``sys.argv[1:]``).
+        exit_code: the exit status of such an error.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     if os.environ.get("HYDRA_FULL_ERROR") or argv_flag(argv, "verbose"):
         os.environ.setdefault("HYDRA_FULL_ERROR", "1")  # verbose: Hydra's complete traceback, not its summary
         hydra_main()
         return
-    from hydra.errors import HydraException
+    from hydra.errors import HydraException, OverrideParseException
     from omegaconf.errors import OmegaConfBaseException
 
     os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises instead of printing its own multi-line report
@@ -153,12 +237,15 @@ def run_reporting_errors(tool: str, hydra_main: Callable[[], object], log_name: 
         sys.exit(1)
     except (HydraException, OmegaConfBaseException, *EXPECTED_ERRORS) as err:
         message = one_line(err) if isinstance(err, HydraException | OmegaConfBaseException) else str(err).strip()
+        if isinstance(err, OverrideParseException):
+            hint = quoting_hint(argv)
+            message = f"cannot parse the command line: {hint}" if hint else message
         log = getattr(err, LOG_ATTRIBUTE, None)
-        if log is None:
+        if log is None and log_name is not None:
             out_dir = argv_value(argv, "out_dir")
             multirun = "-m" in argv or "--multirun" in argv
             if out_dir and not (multirun and "," in out_dir):
                 log = _write_log(Path(out_dir) / log_name, message, err)
         where = f" [log: {log}]" if log else ""
-        print(f"{tool}: error: {message}{where}", file=sys.stderr, flush=True)
-        sys.exit(1)
+        print(f"{tool + ': ' if tool else ''}error: {message}{where}", file=sys.stderr, flush=True)
+        sys.exit(exit_code)

@@ -11,7 +11,6 @@ typed schema is :class:`EvaluateConfig`. It creates no run folder and no log fil
 
 from __future__ import annotations
 
-import os
 import sys
 import warnings
 from dataclasses import dataclass, field
@@ -22,9 +21,8 @@ import hydra
 from hydra.core.config_store import ConfigStore
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
-from dfvo.cli.errors import one_line
+from dfvo.cli.errors import run_reporting_errors
 from dfvo.eval.alignment import AlignMode
 from dfvo.eval.report import evaluate_sequences, format_table, sequence_name
 from dfvo.io.json_io import write_json
@@ -200,18 +198,9 @@ def evaluate_app(cfg: DictConfig) -> dict:
 
 
 def main() -> None:
-    """Entry point of ``dfvo-eval`` and ``python -m dfvo.evaluate``: :func:`evaluate_app`, and a command line Hydra
-    cannot compose (an unknown key, a value of the wrong type or choice) reported like other bad input: one
-    ``error:`` line, exit status 2 (``HYDRA_FULL_ERROR=1`` keeps Hydra's own report)."""
-    if os.environ.get("HYDRA_FULL_ERROR"):
-        evaluate_app()
-        return
-    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises instead of printing its own multi-line report
-    try:
-        evaluate_app()
-    except (HydraException, OmegaConfBaseException) as err:
-        print(f"error: {one_line(err)}", file=sys.stderr)
-        sys.exit(2)
+    """Entry point of ``dfvo-eval`` and ``python -m dfvo.evaluate``: :func:`evaluate_app`, with a config Hydra cannot
+    compose (an unknown key: the closest valid one; a missing quote) also one ``error:`` line, exit status 2."""
+    run_reporting_errors(None, evaluate_app, None, exit_code=2)
 
 
 if __name__ == "__main__":

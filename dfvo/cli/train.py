@@ -15,14 +15,15 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from dfvo.cli.errors import EXPECTED_ERRORS, report_error
+from dfvo.cli.errors import EXPECTED_ERRORS, report_error, run_reporting_errors
 from dfvo.training.config import register_configs
 
 register_configs()
 
 
 @hydra.main(config_path="pkg://dfvo.conf.train", config_name="train", version_base="1.3")
-def main(cfg: DictConfig) -> None:
+def train_app(cfg: DictConfig) -> None:
+    """The Hydra task: one training run (:func:`dfvo.training.runner.run_training`)."""
     from dfvo.training.runner import run_training  # deferred: Lightning is slow to import; --help is not
 
     try:
@@ -34,6 +35,12 @@ def main(cfg: DictConfig) -> None:
     weights = f", weights {result['weights']}" if result["weights"] else ""
     print(f"done: step {result['global_step']}, last checkpoint {result['last_ckpt']}, best {result['best_ckpt']}"
           f"{weights}")
+
+
+def main() -> None:
+    """Entry point of ``dfvo-train`` and ``python train.py``: :func:`train_app`, with a config Hydra cannot compose
+    (an unknown key: the closest valid one) ending in one line."""
+    run_reporting_errors("dfvo-train", train_app, None)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from dfvo.data.image_io import DatasetError, require_file
+from dfvo.data.intrinsics_check import check_matrix
 
 
 class CalibValues(dict):
@@ -82,6 +83,25 @@ def intrinsics_from_projection(P: np.ndarray) -> np.ndarray:
     """(3,3) intrinsics ``K`` of a rectified (3,4) projection matrix ``P = K [I | t]``."""
     K = P[:3, :3].copy()
     K[2] = (0.0, 0.0, 1.0)
+    return K
+
+
+def checked_intrinsics(path: str | Path, key: str, image_hw: tuple[int, int],
+                       calib: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """(3,3) float64 intrinsics of the projection matrix ``key`` of a calibration file, checked against the images
+    they describe (``image_hw`` = (height, width) of the stored frames) by :mod:`dfvo.data.intrinsics_check`, the
+    checks every reader applies (``data=folder`` too).
+
+    Raises:
+        IntrinsicsError: ``fx``, ``fy``, ``cx`` or ``cy`` not finite, not positive, outside the image, or an
+            implausible field of view; the message names the file, the line and the value.
+        DatasetError: the line is missing or malformed (see :func:`get_matrix`).
+    """
+    calib = read_calib_file(path) if calib is None else calib
+    K = intrinsics_from_projection(get_matrix(calib, key, (3, 4), path))
+    lineno = getattr(calib, "lines", {}).get(key)
+    at = f" line {lineno}" if lineno is not None else ""
+    check_matrix(K, int(image_hw[1]), int(image_hw[0]), source=f"calibration file {path}{at} ('{key}:')")
     return K
 
 

@@ -301,26 +301,31 @@ class KittiFlow(FlowPairDataset):
         root: the ``training`` folder (or the folder holding it).
         version: 2012 (images ``colored_0``) or 2015 (``image_2``).
         mask: ``"occ"`` (all pixels with ground truth, ``flow_occ``) or ``"noc"`` (non-occluded, ``flow_noc``).
+        images: require the frames (False: the ground truth alone, for scoring precomputed flows; the pairs'
+            image paths may then not exist).
         **size: ``height``, ``width``, ``resize``, ``crop`` of :class:`FlowPairDataset`.
 
     Each pair's ``extra`` holds the ``flow_occ`` and ``flow_noc`` files that exist (for evaluation).
     """
 
-    def __init__(self, root: str | Path, version: int = 2015, mask: str = "occ", **size: Any) -> None:
+    def __init__(self, root: str | Path, version: int = 2015, mask: str = "occ", images: bool = True,
+                 **size: Any) -> None:
         root = require_dir(root, f"KITTI {version} flow root")
         train = root / "training" if (root / "training").is_dir() else root
         image_dir = {2012: "colored_0", 2015: "image_2"}.get(int(version))
         if image_dir is None or mask not in ("occ", "noc"):
             raise ValueError(f"KittiFlow: version={version}, mask={mask!r}; expected 2012|2015 and occ|noc")
-        images = require_dir(train / image_dir, f"KITTI {version} flow images")
+        image_folder = train / image_dir
+        if images:
+            require_dir(image_folder, f"KITTI {version} flow images")
         expected = f"training/{image_dir}/NNNNNN_10.png, NNNNNN_11.png and training/flow_{mask}/NNNNNN_10.png"
         pairs = []
         for gt in _require_files(train / f"flow_{mask}", "*_10.png", f"KITTI {version} flow_{mask}", expected):
             name = gt.name[: -len("_10.png")]
-            img1, img2 = images / f"{name}_10.png", images / f"{name}_11.png"
-            if not (img1.is_file() and img2.is_file()):
+            img1, img2 = image_folder / f"{name}_10.png", image_folder / f"{name}_11.png"
+            if images and not (img1.is_file() and img2.is_file()):
                 raise DatasetError(f"KITTI {version}: ground truth {gt} has no frames {img1.name}, {img2.name} in "
-                                   f"{images} (expected {expected})")
+                                   f"{image_folder} (expected {expected})")
             extra = {m: train / f"flow_{m}" / gt.name for m in ("occ", "noc")
                      if (train / f"flow_{m}" / gt.name).is_file()}
             pairs.append(FlowPair(img1, img2, gt, name=name, extra=extra))

@@ -4,11 +4,13 @@ Convention:
     - ``read_image`` returns a (3,H,W) float32 tensor in [0,1], RGB. Grayscale files are replicated to three
       channels, alpha is dropped, palette images are expanded. 8-bit files are divided by 255, 16-bit
       files by 65535.
-    - Image folders are listed in natural order (``frame2`` before ``frame10``), PNG and JPEG only.
+    - Image folders are listed in natural order (``frame2`` before ``frame10``), PNG and JPEG only; hidden files
+      (names starting with ``.``, such as macOS's ``._000001.png``) are skipped with one warning.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
@@ -18,6 +20,8 @@ import torch.nn.functional as F
 from PIL import Image, UnidentifiedImageError
 
 IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg")
+
+log = logging.getLogger("dfvo.data")
 
 
 class DatasetError(ValueError):
@@ -49,14 +53,21 @@ def _natural_key(path: Path) -> list[int | str]:
 
 
 def list_images(folder: str | Path, what: str = "image folder") -> list[Path]:
-    """All PNG/JPEG files directly inside ``folder``, in natural order.
+    """All PNG/JPEG files directly inside ``folder``, in natural order; hidden files (``._000001.png``) are skipped
+    and reported in one warning.
 
     Raises:
         DatasetNotFoundError: ``folder`` does not exist.
         DatasetError: ``folder`` holds no PNG/JPEG file.
     """
     folder = require_dir(folder, what)
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    images = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    files = [p for p in images if not p.name.startswith(".")]
+    hidden = sorted((p.name for p in images if p.name.startswith(".")), key=lambda n: _natural_key(Path(n)))
+    if hidden:
+        log.warning("%s: skipped %d hidden file%s in %s (%s%s: names starting with '.', such as the '._' files "
+                    "macOS writes beside copied frames, are not frames)", what, len(hidden),
+                    "s" if len(hidden) > 1 else "", folder, ", ".join(hidden[:3]), ", ..." if len(hidden) > 3 else "")
     if not files:
         raise DatasetError(f"{what}: folder {folder} contains no images (expected files ending in "
                            f"{', '.join(IMAGE_SUFFIXES)})")

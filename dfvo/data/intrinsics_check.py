@@ -15,21 +15,29 @@ Convention:
       10..170 degrees (a 10-degree lens is a long telephoto; beyond 170 degrees the pinhole focal length is
       under 5 % of the width, the signature of focal lengths in millimetres or normalised units).
     - ``fx / fy`` must lie in 0.5..2 (square pixels give 1; anamorphic video stays well inside).
+    - A principal point farther than a quarter of the width (height) from the image centre ``((w-1)/2, (h-1)/2)``
+      is logged as a warning, not refused: real lenses sit within a few percent of the centre, but crops exist. It
+      is the signature of intrinsics from another resolution (frames downscaled by 2 with full-resolution
+      intrinsics put the principal point at the right and bottom edges).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from typing import Any
 
 __all__ = ["IntrinsicsError", "RADTAN_COUNTS", "FISHEYE_COUNTS", "check_intrinsics", "check_matrix",
-           "horizontal_fov_deg"]
+           "horizontal_fov_deg", "principal_point_offset"]
 
 RADTAN_COUNTS: tuple[int, ...] = (4, 5, 8)
 FISHEYE_COUNTS: tuple[int, ...] = (4,)
 HFOV_RANGE_DEG: tuple[float, float] = (10.0, 170.0)
 FX_FY_RATIO_RANGE: tuple[float, float] = (0.5, 2.0)
+PRINCIPAL_POINT_WARN_OFFSET = 0.25  # fraction of the side beyond which an off-centre principal point is warned about
+
+log = logging.getLogger("dfvo.data")
 
 
 class IntrinsicsError(ValueError):
@@ -97,7 +105,24 @@ def check_intrinsics(fx: Any, fy: Any, cx: Any, cy: Any, width: int, height: int
         raise IntrinsicsError(f"{n_fx}={fx:g}{where} gives a {fov:.1f}-degree horizontal field of view on the "
                               f"{width}-px-wide image; expected {lo:g}..{hi:g} degrees (focal length in pixels, "
                               "not millimetres or normalised units)")
+    _warn_off_centre(cx, cy, width, height, n_cx, n_cy, where)
     return fx, fy, cx, cy, _check_dist(dist, model, dist_name, where)
+
+
+def principal_point_offset(cx: float, cy: float, width: int, height: int) -> tuple[float, float]:
+    """Offset in pixels of ``(cx, cy)`` from the centre ``((width-1)/2, (height-1)/2)`` of the image."""
+    return cx - (width - 1) / 2.0, cy - (height - 1) / 2.0
+
+
+def _warn_off_centre(cx: float, cy: float, width: int, height: int, n_cx: str, n_cy: str, where: str) -> None:
+    dx, dy = principal_point_offset(cx, cy, width, height)
+    if abs(dx) <= PRINCIPAL_POINT_WARN_OFFSET * width and abs(dy) <= PRINCIPAL_POINT_WARN_OFFSET * height:
+        return
+    log.warning("%s=%g, %s=%g%s: the principal point is %+.0f px, %+.0f px from the centre of the %dx%d image "
+                "(%.0f %% of the width, %.0f %% of the height; lenses are within a few %%): are the intrinsics from "
+                "another resolution (frames resized or cropped after calibration)? Intrinsics are in pixels of the "
+                "stored frames", n_cx, cx, n_cy, cy, where, dx, dy, width, height, 100 * abs(dx) / width,
+                100 * abs(dy) / height)
 
 
 def _check_dist(dist: Any, model: str, name: str, where: str) -> list[float] | None:

@@ -26,7 +26,7 @@ import torch
 from torch.utils.data import Dataset
 
 from dfvo.data.calibration import (
-    intrinsics_from_projection,
+    checked_intrinsics,
     read_odometry_projections,
     stereo_baseline,
     stereo_transform,
@@ -103,6 +103,9 @@ class KittiOdometry(Dataset):
 
         cams = (left_id, right_id) if self.stereo else (left_id,)
         proj = read_odometry_projections(seq_dir / "calib.txt", cams)
+        self.native_size = image_size(all_left[0])
+        K_native = torch.as_tensor(checked_intrinsics(seq_dir / "calib.txt", f"P{left_id}", self.native_size),
+                                   dtype=torch.float32)  # before the baseline divides by fx
         self.baseline = stereo_baseline(proj[left_id], proj[right_id]) if self.stereo else None
 
         poses = None
@@ -132,10 +135,8 @@ class KittiOdometry(Dataset):
         self.poses: np.ndarray | None = poses[self.frame_ids] if poses is not None else None
         self.timestamps: np.ndarray | None = times[self.frame_ids] if times is not None else None
 
-        self.native_size = image_size(self.left_files[0])
         working = check_working_size(height, width, f"KittiOdometry({seq_dir})")
         self.image_size: tuple[int, int] = working if working is not None else self.native_size
-        K_native = torch.as_tensor(intrinsics_from_projection(proj[left_id]), dtype=torch.float32)
         _, self.intrinsics = resize_with_intrinsics(torch.zeros(1, *self.native_size), K_native, *self.image_size)
         self.T_right_left = stereo_transform(self.baseline) if self.baseline is not None else None
         self.temporal = temporal

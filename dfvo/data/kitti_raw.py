@@ -28,7 +28,7 @@ from torch.utils.data import Dataset
 
 from dfvo.data.calibration import (
     camera_from_rectified_cam0,
-    intrinsics_from_projection,
+    checked_intrinsics,
     read_raw_projections,
     read_raw_rectification,
     read_rigid_transform,
@@ -151,10 +151,10 @@ class _Drive:
                                    f"{len(self.right)}; expected equal counts")
         cam_file = require_file(drive_dir.parent / "calib_cam_to_cam.txt", "KITTI raw camera calibration")
         proj = read_raw_projections(cam_file, (2, 3))
-        self.baseline = stereo_baseline(proj[2], proj[3])
         self.native_size = image_size(self.left[0])
+        K = torch.as_tensor(checked_intrinsics(cam_file, "P_rect_02", self.native_size), dtype=torch.float32)
+        self.baseline = stereo_baseline(proj[2], proj[3])  # after the check: it divides by fx
         self.size = size if size is not None else self.native_size
-        K = torch.as_tensor(intrinsics_from_projection(proj[2]), dtype=torch.float32)
         _, self.K = resize_with_intrinsics(torch.zeros(1, *self.native_size), K, *self.size)
         poses = oxts_camera_poses(drive_dir, 2)
         if poses is not None and len(poses) != len(self.left):

@@ -20,6 +20,7 @@ Convention:
 
 from __future__ import annotations
 
+import functools
 import logging
 import textwrap
 from collections import Counter
@@ -32,6 +33,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib import font_manager  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
@@ -46,6 +48,7 @@ ALIGN_DESCRIPTIONS = {"7dof": "7-DoF Sim(3) (rotation, translation, scale)", "6d
                       "translation; predicted scale kept)", "scale": "scale only", "none": "none (as predicted)"}
 TRACKER_COLORS = {"init": "#bbbbbb", "E": "#2ca02c", "PnP": "#ff7f0e", "constant_motion": "#d62728"}
 _OTHER_COLOR = "#9467bd"
+_MAX_REASONS = 6  # distinct fallback reasons listed under frames.png (the most frequent first)
 _METRIC_FORMATS = (("t_err_pct", "t_err {:.2f} %"), ("r_err_deg_per_100m", "r_err {:.2f} deg/100 m"),
                    ("ate_m", "ATE {:.3g} m"), ("rpe_m", "RPE {:.3g} m"), ("rpe_deg", "RPE {:.3g} deg"))
 _AXES = {"x": 0, "y": 1, "z": 2}
@@ -64,6 +67,44 @@ def _save(fig: Figure, path: str | Path) -> Path:
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+@functools.lru_cache(maxsize=64)
+def _font_chars(path: str) -> frozenset[int]:
+    from matplotlib.ft2font import FT2Font
+
+    return frozenset(FT2Font(path).get_charmap())
+
+
+@functools.lru_cache(maxsize=64)
+def _font_having(chars: frozenset[str]) -> str | None:
+    """The family name of an installed font that has every character of ``chars`` (None: no font has them).
+    Matplotlib's "Last Resort" font does not count: it maps every character to the same placeholder box."""
+    for entry in font_manager.fontManager.ttflist:
+        if entry.name.startswith("Last Resort"):
+            continue
+        try:
+            if all(ord(c) in _font_chars(entry.fname) for c in chars):
+                return entry.name
+        except (OSError, RuntimeError):  # a font file FreeType cannot open
+            continue
+    return None
+
+
+def _drawable(text: str, family: str = "sans-serif") -> tuple[str, dict[str, Any]]:
+    """``text`` and the Text keywords that draw it without matplotlib's "Glyph missing" warnings: characters the
+    default font lacks (a sequence named in Chinese, Cyrillic, ...) are drawn with an installed font that has them
+    (as a fallback family), else written as ASCII escapes (``\\u6771``)."""
+    if text.isascii():
+        return text, {}
+    default = font_manager.findfont(font_manager.FontProperties(family=[family]))
+    missing = frozenset(c for c in text if not c.isspace() and ord(c) not in _font_chars(default))
+    if not missing:
+        return text, {}
+    fallback = _font_having(missing)
+    if fallback is not None:
+        return text, {"fontfamily": [font_manager.FontProperties(fname=default).get_name(), fallback]}
+    return "".join(c.encode("ascii", "backslashreplace").decode() if c in missing else c for c in text), {}
 
 
 def _nice_length(extent: float) -> float:
@@ -126,7 +167,8 @@ def trajectory_figure(gt: np.ndarray | None, pred: np.ndarray, title: str = "", 
     ax.set_ylabel(f"{plane[1]} [{units}]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, color="0.92")
-    ax.set_title(title)
+    label, font = _drawable(title)
+    ax.set_title(label, **font)
     ax.legend(loc="best", fontsize=8)
     length = _path_length(p[finite]) if len(finite) else 0.0
     extra = f"predicted path length {length:.4g} {units}, {len(pred)} frames"
@@ -146,7 +188,8 @@ def trajectory_figure(gt: np.ndarray | None, pred: np.ndarray, title: str = "", 
             extra += "; the camera did not move"
     text = _caption(metrics, align, caption, extra)
     if text:
-        t = fig.text(0.5, 0.0, text, ha="center", va="top", fontsize=8.5)
+        text, font = _drawable(text)
+        t = fig.text(0.5, 0.0, text, ha="center", va="top", fontsize=8.5, **font)
         t.set_gid("caption")
     return fig
 
@@ -258,15 +301,25 @@ def frames_figure(rows: Sequence[dict[str, Any]], pred: np.ndarray | None = None
         ax.grid(True, color="0.92")
         if ax.get_legend_handles_labels()[0]:
             ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
-    ax_t.set_title(title)
+    label, font = _drawable(title)
+    ax_t.set_title(label, **font)
     count = Counter(t for t in trackers if t)
     reasons = Counter(str(r.get("fallback_reason")).strip() for r, fb in zip(rows, fallback, strict=True)
                       if fb and str(r.get("fallback_reason") or "").strip() not in ("", "None"))
     text = "trackers: " + ", ".join(f"{n} {c}" for n, c in count.most_common())
     text += f" | fallback frames: {int(fallback.sum())} of {len(rows)}"
-    if reasons:
-        text += " (" + "; ".join(f"{r[:70]!r} x{c}" for r, c in reasons.most_common(4)) + ")"
-    fig.text(0.5, 0.0, textwrap.fill(text, 130), ha="center", va="top", fontsize=8.5).set_gid("caption")
+    lines = textwrap.wrap(text, 130)
+    if reasons:  # a legend table: one whole reason per line (wrapped, never cut), its frame count first
+        lines.append("fallback reasons (frames with that reason):")
+        for reason, c in reasons.most_common(_MAX_REASONS):
+            lines += textwrap.wrap(reason, 130, initial_indent=f"{c:>5} x  ", subsequent_indent=" " * 9)
+        if len(reasons) > _MAX_REASONS:
+            rest = sum(c for _, c in reasons.most_common()[_MAX_REASONS:])
+            lines.append(f"{rest:>5} x  {len(reasons) - _MAX_REASONS} other reasons (every frame's reason: "
+                         "frames.csv)")
+    text, font = _drawable("\n".join(lines), "monospace" if reasons else "sans-serif")
+    table = {"ha": "left", "family": "monospace"} if reasons else {"ha": "center"}
+    fig.text(0.02 if reasons else 0.5, 0.0, text, va="top", fontsize=8.5, **{**table, **font}).set_gid("caption")
     fig.tight_layout()
     return fig
 
@@ -313,7 +366,8 @@ def segment_errors_figure(per_length: dict, title: str = "") -> Figure | None:
         ax.set_ylim(bottom=0)
         ax.grid(True, color="0.92")
         ax.legend(fontsize=8)
-    fig.suptitle(title)
+    text, font = _drawable(title)
+    fig.suptitle(text, **font)
     return fig
 
 

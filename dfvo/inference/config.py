@@ -19,7 +19,7 @@ from enum import StrEnum
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from dfvo.data.kitti_odometry import selects_kitti_odometry
 from dfvo.eval.alignment import AlignMode
@@ -66,6 +66,8 @@ class ImgResConfig:
     ``width`` alone keeps the frames' aspect ratio (the height follows, both rounded to multiples of 32, the
     networks' stride: KITTI 1241x376 → 640x192, EuRoC 752x480 → 640x416); ``scale`` alone scales both sides;
     ``height`` and ``width`` together force that size (an aspect change is reported); all null: native size.
+    ``img_res=low`` gives ``width: 640`` through the resolver ``dfvo.width_unless_scaled``, so ``img_res.scale=0.5``
+    alone replaces that default width; a ``width`` given on the command line with ``scale`` is a contradiction.
     """
 
     height: int | None = None
@@ -335,8 +337,17 @@ class InferConfig:
             self.tracker.scale.camera_height = float(height)
 
 
+WIDTH_UNLESS_SCALED = "dfvo.width_unless_scaled"
+
+
+def _width_unless_scaled(width: int | None, scale: float | None) -> int | None:
+    """A group's default working width, dropped when ``img_res.scale`` is given (``scale=`` alone wins)."""
+    return None if scale is not None else width
+
+
 def register_configs() -> None:
-    """Store the schemas in Hydra's ConfigStore (idempotent)."""
+    """Store the schemas in Hydra's ConfigStore and the resolver the ``img_res`` groups use (idempotent)."""
+    OmegaConf.register_new_resolver(WIDTH_UNLESS_SCALED, _width_unless_scaled, replace=True)
     cs = ConfigStore.instance()
     cs.store(name="infer_schema", node=InferConfig)
     for kind, schema in DATA_SCHEMAS.items():

@@ -131,11 +131,19 @@ def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSeque
     if data.kind == "stream":
         raise ValueError("data=stream is a live source, read frame by frame (dfvo.inference.live.run_live), not a "
                          "sequence")
+    _check_range(data)
     data, name = resolve_data(data, seq)
     if data.kind == "synthetic":  # rendered at the working size directly
         return _synthetic(data, name, working_hw(img_res, KITTI_HW))
     opened = _open_native(data, name)
     return at_working_size(opened, working_hw(img_res, tuple(opened.image(0).shape[-2:])))
+
+
+def _check_range(data: Any) -> None:
+    """``data.step`` must be a positive number of frames (0 or negative would stop or run the footage backwards)."""
+    if data.step is not None and int(data.step) < 1:
+        raise ValueError(f"data.step={data.step}; expected a positive integer (every step-th frame, 1: every frame; "
+                         "the footage is always read forwards)")
 
 
 def _range(data: Any) -> dict[str, int | None]:

@@ -6,14 +6,29 @@
   :class:`~dfvo.tracking.diagnostics.FrameDiagnostics`, the seconds per stage and the 21 upper-triangle entries of
   the step's 6x6 covariance (``cov_rx_rx`` ... ``cov_tz_tz``, :mod:`dfvo.tracking.covariance`; empty on frame 0);
   a live stream adds its own columns (``stream_frame``, ``dropped_before``, ``timestamp``).
-- ``metrics.json``, ``summary.json``, the plots: at the end (:mod:`dfvo.inference.report`).
+- ``metrics.json``, ``summary.json``, the plots: at the end (:mod:`dfvo.inference.report`); a first
+  ``summary.json`` marked unfinished is written when tracking starts, so a run killed outright (SIGKILL, power loss)
+  still says in OUT that it did not finish and which pose file it was writing.
+
+One run at a time per folder: :func:`lock_out_dir` takes an exclusive lock (``OUT/.dfvo.lock``, ``flock``: the
+kernel drops it when its process dies, so a killed run never blocks the folder); a second run refuses with one line.
+A rerun into a folder replaces the previous run's outputs (:func:`clear_previous_outputs`): nothing stale survives
+beside the new ones. A write that fails (a full disk, a quota) is one error naming the file (:func:`writing`).
 """
 
 from __future__ import annotations
 
 import csv
+import errno
+import json
+import logging
 import math
 import os
+import shutil
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +36,15 @@ from dfvo.inference.config import InferConfig
 from dfvo.tracking.covariance import COVARIANCE_FIELDS
 from dfvo.tracking.diagnostics import DIAGNOSTIC_FIELDS, FrameDiagnostics
 
-__all__ = ["prepare_out_dir", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary"]
+__all__ = ["prepare_out_dir", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary", "OutDirBusy",
+           "OutDirLock", "lock_out_dir", "clear_previous_outputs", "RUN_OUTPUTS", "OutputWriteError", "writing"]
+
+log = logging.getLogger("dfvo.infer")
+
+LOCK_NAME = ".dfvo.lock"
+# what a run writes into out_dir besides its pose file (named in summary.json) and Hydra's own infer.log / .hydra/
+RUN_OUTPUTS = ("summary.json", "metrics.json", "frames.csv", "trajectory.png", "frames.png", "run.rrd",
+               "tensorboard")
 
 STAGE_FIELDS = ["t_flow", "t_refine", "t_depth", "t_tracker"]
 CSV_FIELDS = [f for f in DIAGNOSTIC_FIELDS if not f.startswith("time_")] + STAGE_FIELDS + COVARIANCE_FIELDS
@@ -50,6 +73,149 @@ def prepare_out_dir(out_dir: Any) -> Path:
     if not os.access(out, os.W_OK | os.X_OK):
         raise PermissionError(f"out_dir={out}: the output folder is not writable; pass out_dir= a writable folder")
     return out
+
+
+class _OneLineOSError(OSError):
+    """An ``OSError(errno, message[, filename])`` whose text is the message alone (no ``[Errno N]`` prefix)."""
+
+    def __str__(self) -> str:
+        return str(self.args[1]) if len(self.args) > 1 else super().__str__()
+
+
+class OutDirBusy(_OneLineOSError):
+    """Another live run holds the output folder's lock."""
+
+
+class OutDirLock:
+    """Exclusive use of an output folder by this process: ``flock`` on ``OUT/.dfvo.lock`` (which holds the holder's
+    pid, host and start time for the message of a refused run). Re-entrant within a process (the command line takes
+    it before Hydra writes into the folder, the pipeline again for the job's folder); the file is removed on
+    :meth:`release`, and the kernel drops the lock of a process that dies, so a stale file never blocks."""
+
+    def __init__(self, out: Path, fd: int | None) -> None:
+        self.out, self.path, self._fd, self._depth = out, out / LOCK_NAME, fd, 1
+
+    def release(self) -> None:
+        """Give the folder back (the last release of this process removes the lock file)."""
+        self._depth -= 1
+        if self._depth > 0 or self.out not in _HELD:
+            return
+        _HELD.pop(self.out, None)
+        if self._fd is None:  # a platform without flock: nothing was locked
+            return
+        try:
+            self.path.unlink(missing_ok=True)
+        except OSError:
+            pass
+        os.close(self._fd)
+        self._fd = None
+
+    def __enter__(self) -> OutDirLock:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+
+_HELD: dict[Path, OutDirLock] = {}
+
+
+def lock_out_dir(out_dir: str | Path) -> OutDirLock:
+    """Take the lock of the folder ``out_dir`` (created if missing) for this process; see :class:`OutDirLock`.
+
+    Raises:
+        OutDirBusy: a live process holds it (one line: the folder, the holder's pid and start, what to do).
+    """
+    out = Path(out_dir).resolve()
+    held = _HELD.get(out)
+    if held is not None:
+        held._depth += 1
+        return held
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / LOCK_NAME
+    try:
+        import fcntl
+    except ImportError:  # not POSIX (Windows): no lock, the folder is used as it is
+        log.debug("no fcntl on this platform: out_dir %s is not locked", out)
+        lock = _HELD[out] = OutDirLock(out, None)
+        return lock
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 4096).decode(errors="replace")
+            os.close(fd)
+            raise OutDirBusy(errno.EBUSY, _busy_message(out_dir, holder)) from None
+        try:
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:  # the holder released (and removed) it between our open and our lock
+            same = False
+        if same:
+            break
+        os.close(fd)
+    info = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+    os.ftruncate(fd, 0)
+    os.write(fd, json.dumps(info).encode())
+    lock = _HELD[out] = OutDirLock(out, fd)
+    return lock
+
+
+def _busy_message(out_dir: str | Path, holder: str) -> str:
+    try:
+        info = json.loads(holder)
+        who = f"pid {info['pid']} on {info['host']}, since {info['since']}"
+    except (ValueError, KeyError, TypeError):
+        who = "another process"
+    return (f"out_dir={out_dir} is in use by another dfvo run ({who}); two runs in one folder would mix their "
+            "files: wait for it to finish or pass another out_dir=")
+
+
+def clear_previous_outputs(out: Path) -> list[str]:
+    """Remove the outputs a previous run left in ``out`` (:data:`RUN_OUTPUTS`, and the pose file its
+    ``summary.json`` names), so that everything in the folder after this run is this run's. Hydra's ``infer.log``
+    and ``.hydra/`` are Hydra's to replace; other files are not touched. Returns the names removed (also logged)."""
+    out = Path(out)
+    names = list(RUN_OUTPUTS)
+    try:
+        previous = json.loads((out / "summary.json").read_text()).get("pose_file")
+    except (OSError, ValueError, AttributeError):
+        previous = None
+    if isinstance(previous, str) and Path(previous).parent.resolve() == out.resolve():
+        names.append(Path(previous).name)
+    removed = []
+    for name in names:
+        path = out / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+        else:
+            continue
+        removed.append(name)
+    if removed:
+        log.info("out_dir %s held an earlier run's outputs; removed %s (this run writes its own)", out,
+                 ", ".join(removed))
+    return removed
+
+
+class OutputWriteError(_OneLineOSError):
+    """A file of the run could not be written (disk full, quota, ...); the message names the file."""
+
+
+@contextmanager
+def writing(path: str | Path) -> Iterator[None]:
+    """Turn an ``OSError`` raised inside the block (a write of ``path``) into an :class:`OutputWriteError` whose one
+    line names ``path``: a failed ``write()`` itself says only ``[Errno 28] No space left on device``."""
+    try:
+        yield
+    except OutputWriteError:
+        raise
+    except OSError as err:
+        reason = err.strerror or str(err)
+        hint = "; free space on its disk or pass another out_dir=" if err.errno in (errno.ENOSPC, errno.EDQUOT,
+                                                                                     errno.EFBIG) else ""
+        raise OutputWriteError(err.errno, f"cannot write {path}: {reason}{hint}", str(path)) from err
 
 
 def _fmt(v: Any) -> Any:

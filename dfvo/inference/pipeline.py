@@ -4,6 +4,10 @@ and finish with metrics, plots and the summary (:mod:`dfvo.inference.report`).
 
 An interrupted run (Ctrl-C, SIGTERM) still finishes: the poses written so far are evaluated and plotted, and
 ``summary.json`` says ``partial``; then :class:`RunInterrupted` tells the command line to exit with 128 + signal.
+Any other stop mid-run (an unreadable frame, a full disk) does the same with ``"stopped_by": "error"`` and the
+error's message, then raises the error (with ``dfvo_partial`` = (poses written, frames) for the command line).
+The run holds its output folder's lock throughout, and first removes an earlier run's outputs from it
+(:mod:`dfvo.inference.outputs`).
 """
 
 from __future__ import annotations
@@ -22,11 +26,18 @@ from omegaconf import DictConfig
 from dfvo.inference.config import InferConfig, PoseFormat, ViewerKind
 from dfvo.inference.frames import build_sequence
 from dfvo.inference.loop import FrameRecord, track_sequence
-from dfvo.inference.outputs import FramesCsv, prepare_out_dir
+from dfvo.inference.outputs import (
+    FramesCsv,
+    clear_previous_outputs,
+    lock_out_dir,
+    prepare_out_dir,
+    writing,
+)
 from dfvo.inference.report import finish_run
 from dfvo.inference.rerun_observer import RerunObserver
 from dfvo.inference.tb_logging import TensorboardObserver
 from dfvo.inference.timing import StageTimer
+from dfvo.io.json_io import write_json
 from dfvo.io.trajectory import TrajectoryWriter
 from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, check_sources
 from dfvo.tracking import VisualOdometry
@@ -38,6 +49,9 @@ from dfvo.validation import typed
 __all__ = ["RunInterrupted", "run_inference", "job_output_dir"]
 
 log = logging.getLogger("dfvo.infer")
+
+# summary.json's "stopped_by" while tracking (replaced at the end; it stays when the process is killed outright)
+UNFINISHED = "unfinished: the run is still going, or its process was killed before it could write its summary"
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -108,6 +122,13 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
     """
     icfg: InferConfig = cfg if isinstance(cfg, InferConfig) else typed(cfg)
     out = prepare_out_dir(job_output_dir(icfg))  # before the (slow) sources: a bad out_dir fails at once
+    with lock_out_dir(out):  # one run per folder; a second one refuses (the kernel frees it if this one dies)
+        clear_previous_outputs(out)  # a rerun into the folder: nothing of the earlier run survives
+        return _prepare_and_run(icfg, out)
+
+
+def _prepare_and_run(icfg: InferConfig, out: Path) -> dict[str, Any]:
+    """:func:`run_inference` once the output folder is this run's: open the data and the sources, then track."""
     if icfg.num_threads:
         torch.set_num_threads(int(icfg.num_threads))
     device = resolve_device(icfg.device)
@@ -204,15 +225,24 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     if cfg.pose_format == PoseFormat.tum and seq.timestamps is None:
         raise ValueError(f"pose_format=tum needs the frames' timestamps and {seq.name} has none (data.times=FILE "
                          "for a folder of frames); use pose_format=kitti")
-    poses, table = TrajectoryWriter(pose_file, cfg.pose_format.value), FramesCsv(out / "frames.csv")
+    with writing(out / "summary.json"):
+        write_json(out / "summary.json", {"sequence": seq.name, "frames": seq.length, "frames_written": None,
+                                          "partial": True, "stopped_by": UNFINISHED, "pose_file": str(pose_file)})
+    with writing(pose_file):
+        poses = TrajectoryWriter(pose_file, cfg.pose_format.value)
+    with writing(out / "frames.csv"):
+        table = FramesCsv(out / "frames.csv")
     trajectory = [np.eye(4)]
     diagnostics: list[FrameDiagnostics] = []
-    poses.write(trajectory[0], _stamp(seq, 0))
-    table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init))
     bar = tqdm(total=seq.length - 1, desc=f"dfvo {seq.name}", unit="frame", disable=not cfg.progress)
     stopped: RunInterrupted | None = None
+    failed: Exception | None = None
     start = time.perf_counter()
     try:
+        with writing(pose_file):
+            poses.write(trajectory[0], _stamp(seq, 0))
+        with writing(table.path):
+            table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init))
         with _SignalsToInterrupt():
             for record in track_sequence(seq, flow_src, depth_src, vo, refine=refine, batch_size=cfg.batch_size,
                                          timer=timer, device=device, finetuner=finetuner, overlap=cfg.overlap):
@@ -223,21 +253,41 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
         stopped = err
     except KeyboardInterrupt:
         stopped = RunInterrupted(signal.SIGINT)
+    except Exception as err:  # any other stop mid-run (an unreadable frame, a full disk): partial outputs too
+        failed = err
     finally:
         bar.close()
-        poses.close()
-        table.close()
-        for obs in observers:
-            obs.close()
+        for closable in (poses, table, *observers):
+            try:
+                closable.close()
+            except OSError as err:  # a full disk: the close's flush fails; the error that stopped the run wins
+                failed = failed or err
     wall = time.perf_counter() - start
+    partial = None
     if stopped is not None:
-        log.warning("interrupted by %s: %s holds the first %d of %d poses; writing partial results",
-                    signal.Signals(stopped.signum).name, pose_file, len(trajectory), seq.length)
-    summary = finish_run(seq, np.stack(trajectory), diagnostics, timer, wall, out, align=cfg.align,
-                         pose_file=pose_file, warn_fallback_rate=cfg.warn_fallback_rate,
-                         partial=None if stopped is None else signal.Signals(stopped.signum).name, extra=extra)
+        partial = signal.Signals(stopped.signum).name
+        log.warning("interrupted by %s: %s holds the first %d of %d poses; writing partial results", partial,
+                    pose_file, len(trajectory), seq.length)
+    elif failed is not None:
+        partial = "error"
+        extra = {**extra, "error": str(failed)}
+        log.error("stopped by an error after %d of %d poses (%s); writing partial results", len(trajectory),
+                  seq.length, failed)
+    try:
+        summary = finish_run(seq, np.stack(trajectory), diagnostics, timer, wall, out, align=cfg.align,
+                             pose_file=pose_file, warn_fallback_rate=cfg.warn_fallback_rate, partial=partial,
+                             extra=extra)
+    except Exception as err:
+        if failed is None:
+            raise
+        log.error("the partial results could not be written either: %s", err)
+    else:
+        if failed is not None:
+            failed.dfvo_partial = (summary["frames_written"], seq.length)  # for the command line's message
     if stopped is not None:
         raise stopped
+    if failed is not None:
+        raise failed
     return summary
 
 
@@ -251,9 +301,11 @@ def _write_frame(record: FrameRecord, poses: TrajectoryWriter, table: FramesCsv,
     """Write one tracked frame everywhere (trajectory line, frames.csv row with its covariance, observers)."""
     T_w = record.result.T_w_cur.detach().cpu().double().numpy()
     record.timestamp = timestamp
-    poses.write(T_w, timestamp)
-    table.write(record.result.diagnostics, record.stage_seconds,
-                {**covariance_to_row(record.result.covariance), **(extra or {})})
+    with writing(poses.path):
+        poses.write(T_w, timestamp)
+    with writing(table.path):
+        table.write(record.result.diagnostics, record.stage_seconds,
+                    {**covariance_to_row(record.result.covariance), **(extra or {})})
     trajectory.append(T_w)
     diagnostics.append(record.result.diagnostics)
     for obs in observers:

@@ -12,7 +12,7 @@ import numpy as np
 
 from dfvo.data.sequence import FrameSequence
 from dfvo.eval.odometry_metrics import aligned_prediction, evaluate_trajectory
-from dfvo.inference.outputs import fallback_summary
+from dfvo.inference.outputs import fallback_summary, writing
 from dfvo.inference.timing import StageTimer
 from dfvo.io.json_io import write_json
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
@@ -62,7 +62,8 @@ def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiag
         seq: the sequence. pred: (M,4,4) poses written (M = N, or fewer when ``partial``).
         diagnostics: the M-1 tracked frames. timer: stage times. wall: seconds of the loop.
         align: alignment for the metrics. pose_file: the trajectory file written.
-        partial: why the run stopped early (None: it completed).
+        partial: why the run stopped early: a signal's name, or ``"error"`` (with ``extra["error"]`` its message);
+            None: it completed.
         extra: more fields for ``summary.json`` (sources, settings).
 
     Returns:
@@ -86,17 +87,22 @@ def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiag
         metrics = {"sequence": seq.name, **evaluate_trajectory(gt, pred, align=align)}
         if partial is not None:
             metrics["partial"] = f"first {len(pred)} of {seq.length} frames ({partial})"
-        write_json(out / "metrics.json", metrics)
+        with writing(out / "metrics.json"):
+            write_json(out / "metrics.json", metrics)
         # plotted as evaluated: both relative to their first frame (with ground truth), prediction aligned
         gt_plotted, _, plotted, _ = aligned_prediction(gt, pred, align=align)
     rows = [FrameDiagnostics(frame=0, tracker=TrackerUsed.init).as_row()] + [d.as_row() for d in diagnostics]
     if len(pred) >= 2:
-        plot_trajectory(gt_plotted, plotted, out / "trajectory.png", title=seq.name,
-                        align=align if metrics is not None else None, metrics=metrics,
-                        caption="partial run: " + partial if partial else None)
-        plot_frames(rows, out / "frames.png", pred=plotted, gt=gt_plotted, title=seq.name)
+        caption = None if partial is None else "partial run: " + (
+            f"stopped by an error ({summary.get('error')})" if partial == "error" else partial)
+        with writing(out / "trajectory.png"):
+            plot_trajectory(gt_plotted, plotted, out / "trajectory.png", title=seq.name,
+                            align=align if metrics is not None else None, metrics=metrics, caption=caption)
+        with writing(out / "frames.png"):
+            plot_frames(rows, out / "frames.png", pred=plotted, gt=gt_plotted, title=seq.name)
     summary["metrics"] = metrics
-    write_json(out / "summary.json", summary)
+    with writing(out / "summary.json"):
+        write_json(out / "summary.json", summary)
     _banner(summary, out)
     return summary
 

@@ -10,6 +10,9 @@ Files read:
       ``MODEL_IDENTITY_KEY`` (``"task:name"``, e.g. ``"depth:depth_stereo"``) so a run refuses to resume another
       model's state.
 
+Weights that are not finite (NaN, inf: a file whose data bytes were damaged while its header still reads) are
+refused at load time, naming the file and a tensor.
+
 Every failure raises :class:`CheckpointError` with one line naming the setting the path came from (when known),
 the path, and what was expected.
 """
@@ -54,10 +57,21 @@ def find_checkpoint(path: str | Path | None, setting: str = "checkpoint") -> Pat
     if not path:
         raise CheckpointError(f"{setting} is not set; expected a weights file (.safetensors, .pt or .ckpt)")
     p = Path(path)
-    if p.is_absolute() or p.exists():
-        return p
-    shipped = PACKAGE_DIR / p
-    return shipped if shipped.exists() else p
+    if not (p.is_absolute() or p.exists()) and (PACKAGE_DIR / p).exists():
+        p = PACKAGE_DIR / p
+    if p.is_dir():
+        raise CheckpointError(_folder_message(p, setting))
+    return p
+
+
+WEIGHT_SUFFIXES = (".safetensors", ".pt", ".pth", ".ckpt")
+
+
+def _folder_message(path: Path, setting: str | None) -> str:
+    """``SETTING=PATH is a folder; expected a .safetensors file`` (and the weights files it holds, if any)."""
+    found = sorted(p.name for p in path.iterdir() if p.suffix in WEIGHT_SUFFIXES)[:3]
+    inside = f" (it holds {', '.join(found)}: pass one of them)" if found else ""
+    return f"{_where(path, setting)} is a folder; expected a .safetensors file (or a .pt/.ckpt weights file){inside}"
 
 
 def read_state_dict(path: str | Path, expected: str, setting: str | None = None
@@ -70,6 +84,8 @@ def read_state_dict(path: str | Path, expected: str, setting: str | None = None
     """
     path = Path(path)
     where = _where(path, setting)
+    if path.is_dir():
+        raise CheckpointError(_folder_message(path, setting))
     if not path.is_file():
         raise CheckpointError(f"{where}: {expected} checkpoint does not exist (expected a .safetensors/.pt/.ckpt "
                               f"file holding a {expected})")
@@ -131,8 +147,25 @@ def load_weights(model: nn.Module, path: str | Path, expected: str, setting: str
         k = bad[0]
         raise CheckpointError(f"{where}: tensor {k} has shape {tuple(sub[k].shape)}, the {expected} expects "
                               f"{tuple(wanted[k].shape)} (another network variant?)")
+    corrupt = _non_finite(sub)
+    if corrupt:
+        k, n = corrupt[0]
+        raise CheckpointError(f"{where}: NaN or inf values in {len(corrupt)} of {len(sub)} tensors (e.g. {k}: {n} of "
+                              f"{sub[k].numel()} values); the file is corrupted (its header reads, its weights do "
+                              f"not): copy or export the {expected} again")
     model.load_state_dict({k: v.to(wanted[k].dtype) for k, v in sub.items()})
     return meta
+
+
+def _non_finite(state: dict[str, torch.Tensor]) -> list[tuple[str, int]]:
+    """``(name, count)`` of the floating-point tensors of ``state`` that hold NaN or inf values."""
+    out = []
+    for k, v in state.items():
+        if v.is_floating_point():
+            n = int((~torch.isfinite(v)).sum())
+            if n:
+                out.append((k, n))
+    return out
 
 
 def save_weights(model: nn.Module, path: str | Path, metadata: dict[str, Any],

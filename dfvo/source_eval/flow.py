@@ -7,8 +7,9 @@ BestN rows), which is scored against ``flow_noc`` / ``flow_occ`` (whichever exis
 - sources: ``network`` (:class:`dfvo.sources.networks.NetworkFlow`, refined as ``infer.py`` refines it when
   ``refine.iterations`` > 0), ``dis`` (:class:`dfvo.sources.dis.DISFlow`), ``oracle`` (the ground truth itself:
   AEPE 0, a check of the plumbing), ``pred`` (KITTI-format flow PNGs ``pred_dir/NNNNNN_10.png``; backward flows
-  ``NNNNNN_11.png`` = 11 → 10 on frame 11's pixels, optional). A ``working_size`` resizes the images before the
-  source; its flow is resized back (vectors scaled).
+  ``NNNNNN_11.png`` = 11 → 10 on frame 11's pixels, optional; the images are not needed: ``pred`` and ``oracle`` read
+  the ground truth's flows and their size alone). A ``working_size`` resizes the images before the source; its flow
+  is resized back (vectors scaled).
 - ``all`` rows: every pixel with ground truth. ``bestn`` rows (the paper's "+ BestN"): only the pixels that the
   forward-backward inconsistency (:func:`dfvo.matching.consistency.forward_backward_inconsistency`, computed on
   the flows at the ground truth's size) selects: the N most consistent (``best_n``), DF-VO's ``local_best_k``
@@ -90,9 +91,9 @@ def selection_mask(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, sel: FlowSele
     return mask.view(1, H, W)
 
 
-def _pair_flows(kind: str, src: Any, pair: Any, img1: torch.Tensor, img2: torch.Tensor, gt: dict, s: FlowEvalConfig,
-                pred_dir: Path | None, size: tuple[int, int] | None) -> tuple[torch.Tensor, torch.Tensor | None]:
-    hw = tuple(img1.shape[-2:])
+def _pair_flows(kind: str, src: Any, pair: Any, img1: torch.Tensor | None, img2: torch.Tensor | None, gt: dict,
+                s: FlowEvalConfig, pred_dir: Path | None, size: tuple[int, int] | None, hw: tuple[int, int]
+                ) -> tuple[torch.Tensor, torch.Tensor | None]:
     if kind == "oracle":
         return gt["occ" if "occ" in gt else "noc"][0], None
     if kind == "pred":
@@ -151,8 +152,9 @@ def evaluate_flow_task(cfg: Any) -> dict[str, Any]:
     root = Path(gt_dir)
     train = root / "training" if (root / "training").is_dir() else root
     mask_kind = "occ" if (train / "flow_occ").is_dir() else "noc"
+    need_images = kind not in ("pred", "oracle")  # precomputed flows are scored against the ground truth alone
     try:
-        pairs = KittiFlow(root, version=LAYOUTS[str(s.layout)], mask=mask_kind).pairs
+        pairs = KittiFlow(root, version=LAYOUTS[str(s.layout)], mask=mask_kind, images=need_images).pairs
     except FileNotFoundError as err:
         raise type(err)(f"{err} (flow.layout={s.layout}; kitti2015 reads image_2/, kitti2012 colored_0/)") from err
     if s.frames:
@@ -167,18 +169,22 @@ def evaluate_flow_task(cfg: Any) -> dict[str, Any]:
     thresholds = [float(t) for t in s.thresholds]
     per_pair, seconds = [], 0.0
     for pair in pairs:
-        img1 = read_image(pair.image1)
-        img2 = read_image(pair.image2, expected_size=tuple(img1.shape[-2:]))
         gt = {m: read_kitti_flow(pair.extra[m]) for m in ("noc", "occ") if m in pair.extra}
+        img1 = img2 = None
+        if need_images:
+            img1 = read_image(pair.image1)
+            img2 = read_image(pair.image2, expected_size=tuple(img1.shape[-2:]))
+        first = img1 if img1 is not None else next(iter(gt.values()))[0]
+        hw, what = tuple(first.shape[-2:]), pair.image1 if img1 is not None else pair.extra[next(iter(gt))]
         t0 = time.perf_counter()
-        fwd, bwd = _pair_flows(kind, src, pair, img1, img2, gt, s, pred_dir, size)
+        fwd, bwd = _pair_flows(kind, src, pair, img1, img2, gt, s, pred_dir, size, hw)
         seconds += time.perf_counter() - t0
         sel = selection_mask(fwd, bwd, s.selection) if bwd is not None else None
         sums: dict[str, dict] = {}
         for m, (gt_flow, valid) in gt.items():
-            if tuple(gt_flow.shape[-2:]) != tuple(img1.shape[-2:]):
-                raise DatasetError(f"{pair.extra[m]} is {gt_flow.shape[1]}x{gt_flow.shape[2]}, its image "
-                                   f"{pair.image1} is {img1.shape[1]}x{img1.shape[2]}")
+            if tuple(gt_flow.shape[-2:]) != hw:
+                raise DatasetError(f"{pair.extra[m]} is {gt_flow.shape[1]}x{gt_flow.shape[2]}, {what} is "
+                                   f"{hw[0]}x{hw[1]}")
             sums[m] = {"all": flow_error_sums(fwd, gt_flow, valid, tuple(thresholds))}
             if sel is not None:
                 sums[m]["bestn"] = flow_error_sums(fwd, gt_flow, valid & sel, tuple(thresholds))

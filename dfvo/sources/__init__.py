@@ -62,7 +62,8 @@ def check_sources(flow_cfg: Any, depth_cfg: Any, world: Any = None) -> dict[str,
     for what, cfg in (("flow", flow_cfg), ("depth", depth_cfg)):
         try:
             kinds[what] = kind = resolve_source(cfg, world, what)
-            if kind == "network" and not (cfg.checkpoint and find_checkpoint(cfg.checkpoint).is_file()):
+            if kind == "network" and not (cfg.checkpoint and find_checkpoint(cfg.checkpoint,
+                                                                             f"{what}.checkpoint").is_file()):
                 raise CheckpointError(f"{what}=network: {what} network checkpoint {cfg.checkpoint} does not exist; "
                                       f"set {what}.checkpoint=PATH (a trained {NETWORKS[what]})")
             if kind == "oracle":

@@ -82,6 +82,7 @@ class NetworkFlow:
         load_weights(self.model, self.checkpoint, f"flow network FlowNet({self.variant!r})", "flow.checkpoint")
         self.device = torch.device(device)
         self.input_size = resolve_input_size(input_size, meta, "flow")
+        self._checked_output = False
 
     def _guess_variant(self, device: str) -> str | None:
         """The first FlowNet variant whose parameters the checkpoint holds (None: none does; load_weights then
@@ -105,7 +106,13 @@ class NetworkFlow:
         size = tuple(images_prev.shape[-2:])
         with torch.no_grad():
             fwd, bwd = self.model.forward_backward(*self.network_inputs(images_prev, images_cur))
-            return resize_flow(fwd, size), resize_flow(bwd, size)
+        if not self._checked_output:  # the first batch: finite weights can still give a NaN flow
+            if not (torch.isfinite(fwd).all() and torch.isfinite(bwd).all()):
+                raise CheckpointError(f"flow.checkpoint={self.checkpoint}: the network's flow of the first frames "
+                                      "is NaN or inf; the weights are damaged or not a trained FlowNet: copy or export "
+                                      "the checkpoint again")
+            self._checked_output = True
+        return resize_flow(fwd, size), resize_flow(bwd, size)
 
 
 def blend_flipped_inverse_depth(inv_depth: torch.Tensor, inv_depth_of_mirror: torch.Tensor,

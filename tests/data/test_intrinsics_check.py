@@ -85,3 +85,26 @@ def test_check_matrix_names_the_file() -> None:
         check_matrix(K, 1226, 370, source="seq06/calib.txt")
     with pytest.raises(IntrinsicsError, match="3x3"):
         check_matrix(np.eye(4), 1226, 370)
+
+
+def test_off_centre_principal_point_is_a_warning(caplog: pytest.LogCaptureFixture) -> None:
+    """A principal point more than a quarter of the side from the centre is warned about with its offset (frames
+    downscaled by 2 with the full-resolution intrinsics: KITTI 06's (601.9, 183.1) on a 613x185 frame), not refused;
+    real calibrations (EuRoC, KITTI, TUM: within 3 % of the centre) give no warning."""
+    with caplog.at_level("WARNING", logger="dfvo.data"):
+        check_intrinsics(*EUROC, 752, 480)
+        check_matrix(KITTI_06, 1226, 370, source="calib.txt")
+        check_intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)
+    assert not caplog.records
+    with caplog.at_level("WARNING", logger="dfvo.data"):
+        out = check_matrix(KITTI_06, 613, 185, source="calib.txt")
+    assert out[:4] == (707.0912, 707.0912, 601.8873, 183.1104)
+    (record,) = caplog.records
+    dx, dy = 601.8873 - 306.0, 183.1104 - 92.0  # from the centre ((w-1)/2, (h-1)/2)
+    assert record.getMessage().startswith(f"cx=601.887, cy=183.11 in calib.txt: the principal point is {dx:+.0f} px, "
+                                          f"{dy:+.0f} px from the centre of the 613x185 image ({100 * dx / 613:.0f} % "
+                                          f"of the width, {100 * dy / 185:.0f} % of the height")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="dfvo.data"):  # only the vertical offset beyond a quarter of the height
+        check_intrinsics(500.0, 500.0, 320.0, 400.0, 640, 480)
+    assert len(caplog.records) == 1 and "+0 px, +160 px" in caplog.records[0].getMessage()

@@ -160,7 +160,7 @@ def test_frames_panel_shows_motion_inliers_trackers_and_fallbacks(tmp_path: Path
         assert spans == [5, 6, 9], spans
     assert list(_line(ax_k, "fallback").get_xdata()) == [5, 6, 9]
     text = _caption(fig)
-    assert "fallback frames: 3 of 12" in text and "'E: low cheirality' x2" in text and "E 8" in text
+    assert "fallback frames: 3 of 12" in text and "    2 x  E: low cheirality" in text and "E 8" in text
     plt.close(fig)
     out = plot_frames(rows, tmp_path / "frames.png", pred=pred, gt=gt)
     assert out.read_bytes()[:8] == PNG and out.stat().st_size > 5000
@@ -198,3 +198,51 @@ def test_segment_errors_only_when_segments_exist(tmp_path: Path) -> None:
     assert plot_segment_errors(short["per_length"], stale) is None and not stale.exists()
     assert plot_segment_errors(short["per_length"], tmp_path / "none.png") is None
     assert not (tmp_path / "none.png").exists()
+
+
+def test_frames_caption_gives_whole_fallback_reasons() -> None:
+    """Issue 28: the caption of frames.png lists each fallback reason whole (a legend table: count, then the reason,
+    wrapped), never cut mid-number; beyond six distinct reasons the rest are counted."""
+    long = ("selection failed: only 37 pixels with inconsistency < 0.1 px; valid pixels in only 3 of 100 regions, "
+            "need >= 2 regions with 50 pixels each and >= 2000 correspondences in all")
+    rows = [{"frame": 0, "tracker": "init"}]
+    rows += [{"frame": k, "tracker": "constant_motion", "fallback_reason": long, "constant_motion": 1}
+             for k in range(1, 12)]
+    rows += [{"frame": 12 + k, "tracker": "PnP", "fallback_reason": f"reason number {k}"} for k in range(7)]
+    fig = frames_figure(rows, title="t")
+    text = _caption(fig)
+    plt.close(fig)
+    lines = text.splitlines()
+    assert "fallback reasons (frames with that reason):" in lines
+    start = next(i for i, line in enumerate(lines) if line.startswith("   11 x  "))
+    joined = " ".join(line.strip() for line in lines[start:start + 2]).removeprefix("11 x  ")
+    assert joined == long, joined  # whole, over two wrapped lines
+    assert all(len(line) <= 130 for line in lines)
+    assert sum(line.startswith("    1 x  reason number") for line in lines) == 5
+    assert lines[-1] == "    2 x  2 other reasons (every frame's reason: frames.csv)"
+
+
+def test_non_latin_titles_draw_without_glyph_warnings(tmp_path: Path) -> None:
+    """Issue 28: a sequence named in Chinese or Greek: the plots are written without matplotlib's "Glyph ... missing"
+    warnings (an installed font that has the letters draws them, else they are written as escapes)."""
+    import warnings
+
+    from dfvo.eval.plots import _drawable
+
+    title = "东京_Αθήνα_06"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        plot_trajectory(_curve(10, 1.0), _curve(10, 1.1), tmp_path / "t.png", title=title, align="7dof")
+        plot_frames(_rows_via_csv(tmp_path, 10), tmp_path / "f.png", title=title)
+        fig = segment_errors_figure({"100": {"t_err_pct": 1.0, "r_err_deg_per_100m": 0.5, "num_segments": 3}},
+                                    title=title)
+        fig.savefig(tmp_path / "s.png")
+        plt.close(fig)
+    glyphs = [str(w.message) for w in caught if "Glyph" in str(w.message)]
+    assert not glyphs, glyphs
+    text, font = _drawable(title)
+    if font:  # a font with the letters is installed: the title is kept as it is
+        assert text == title and len(font["fontfamily"]) == 2
+    else:  # none: escapes for what DejaVu Sans lacks (it has Greek, not CJK)
+        assert text == "\\u4e1c\\u4eac_Αθήνα_06", text
+    assert _drawable("KITTI 06") == ("KITTI 06", {})

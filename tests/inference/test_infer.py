@@ -227,6 +227,31 @@ def test_network_flow_roundtrip_matches_model(tmp_path: Path) -> None:
     torch.testing.assert_close(bwd, rb)
 
 
+def test_damaged_flow_weights_are_refused_naming_the_checkpoint(tmp_path: Path) -> None:
+    """Weights with NaN (a file whose data bytes were damaged, its header intact) are refused at load time, naming
+    the file and a tensor; finite weights whose flow is not finite are refused on the first frames."""
+    from safetensors.torch import save_file
+
+    from dfvo.models.flow_net import FlowNet
+
+    state = {f"net.{k}": v.clone().contiguous() for k, v in FlowNet("tiny").state_dict().items()}
+    name = next(k for k, v in state.items() if v.is_floating_point() and v.numel() > 10)
+    state[name].view(-1)[:7] = float("nan")
+    damaged = tmp_path / "damaged.safetensors"
+    save_file(state, str(damaged), metadata={"variant": "tiny"})
+    with pytest.raises(CheckpointError, match=rf"^flow\.checkpoint={damaged}: NaN or inf values in 1 of {len(state)} "
+                                              rf"tensors \(e\.g\. {name.removeprefix('net.')}: 7 of \d+ values\); "
+                                              "the file is corrupted"):
+        NetworkFlow(damaged)
+    huge = {k: v * 1e30 if v.is_floating_point() else v for k, v in FlowNet("tiny").state_dict().items()}
+    overflowing = tmp_path / "overflowing.safetensors"
+    save_file({f"net.{k}": v.contiguous() for k, v in huge.items()}, str(overflowing), metadata={"variant": "tiny"})
+    src = NetworkFlow(overflowing)  # finite weights: loaded
+    with pytest.raises(CheckpointError, match=rf"^flow\.checkpoint={overflowing}: the network's flow of the first "
+                                              "frames is NaN or inf"):
+        src(torch.rand(1, 3, 64, 96), torch.rand(1, 3, 64, 96))
+
+
 def test_two_view_scale_gets_each_pairs_later_depth_across_batches(tmp_path: Path) -> None:
     """tracker.scale.depth_views=2: the loop hands the tracker frame i+1's depth for pair (i, i+1), carried over
     batch boundaries and into a last partial batch (10 frames, batches of 2 pairs). With the true depth the scale

@@ -167,6 +167,30 @@ def test_synthetic_fields_two_pairs_both_masks(tmp_path: Path) -> None:
     assert oracle["metrics"]["occ"]["all"]["aepe"] == 0 and oracle["metrics"]["occ"]["all"]["out_1"] == 0
 
 
+def test_precomputed_flows_need_no_images(tmp_path: Path) -> None:
+    """Issue 28: ``task=flow`` on precomputed flows with only the ground-truth flows beside them evaluates (the
+    images are read only when a flow source must run), with the same numbers as with the images there, also from
+    the command line; the network source still needs the images and says so."""
+    import shutil
+    import subprocess
+    import sys
+
+    _fixture_2012(tmp_path, 3)
+    with_images = evaluate_flow_task(_cfg(tmp_path / "training", tmp_path / "pred", layout="kitti2012"))
+    shutil.rmtree(tmp_path / "training" / "colored_0")
+    without = evaluate_flow_task(_cfg(tmp_path / "training", tmp_path / "pred", layout="kitti2012"))
+    assert without["metrics"] == with_images["metrics"] and without["num_pairs"] == 2
+    oracle = evaluate_flow_task(_cfg(tmp_path / "training", layout="kitti2012", source="oracle"))
+    assert oracle["metrics"]["occ"]["all"]["aepe"] == 0
+    proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", "task=flow", f"gt_dir={tmp_path / 'training'}",
+                           f"pred_dir={tmp_path / 'pred'}", "flow.layout=kitti2012"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "flow: pred on kitti2012 (2 pairs)" in proc.stdout
+    with pytest.raises(FileNotFoundError, match=r"KITTI 2012 flow images: folder .*colored_0 does not exist"):
+        evaluate_flow_task(_cfg(tmp_path / "training", layout="kitti2012", source="dis"))
+
+
 def test_bestn_rows_use_the_backward_flow(tmp_path: Path) -> None:
     data = _fixture_2012(tmp_path, 4)
     for name, (occ, _, pred_path) in data.items():
@@ -246,8 +270,8 @@ def test_flow_task_errors(tmp_path: Path) -> None:
         evaluate_flow_task(_cfg(gt, bogus=1))
     with pytest.raises(ValueError, match="flow.layout='kitti2020'"):
         evaluate_flow_task(_cfg(gt, layout="kitti2020"))
-    with pytest.raises(FileNotFoundError, match="image_2"):
-        evaluate_flow_task(_cfg(gt, tmp_path / "pred"))  # kitti2015 layout on 2012 files
+    with pytest.raises(FileNotFoundError, match="image_2"):  # kitti2015 layout on 2012 files, a source that must run
+        evaluate_flow_task(_cfg(gt, source="network"))
     with pytest.raises(ValueError, match="gt_dir"):
         evaluate_flow_task(OmegaConf.create({"task": "flow"}))
     next(iter(data.values()))[2].unlink()
