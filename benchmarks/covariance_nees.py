@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dfvo.tracking.covariance import covariance_from_row, nees, step_error
+from dfvo.geometry.pose_covariance import covariance_from_row, nees, step_error
 
 
 def chi2_quantile(p: float, dof: int) -> float:

@@ -41,8 +41,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import dfvo.inference.loop as loop
+from dfvo.inference.assembly import resolve_device
 from dfvo.inference.config import typed
-from dfvo.inference.pipeline import resolve_device, run_inference
+from dfvo.inference.pipeline import run_inference
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_KITTI = REPO.parent / "shared" / "data" / "kitti_odom"

@@ -69,7 +69,7 @@ def test_poses_equal_infer_py_on_the_same_frames(world: SyntheticWorld, tmp_path
     api = np.stack([r.T_w_c for r in results])
     assert [r.tracker for r in results] == [row["tracker"] for row in rows]
     assert np.abs(api - cli).max() < 1e-6, np.abs(api - cli).max()
-    from dfvo.tracking.covariance import covariance_from_row
+    from dfvo.geometry.pose_covariance import covariance_from_row
 
     for r, row in zip(results[1:], rows[1:], strict=True):
         C = covariance_from_row(row).numpy()

@@ -20,7 +20,8 @@ ROOT = "(root)"  # the package's own __init__.py and the modules beside it (dfvo
 # The same table, with the reasons, is in docs/architecture.md.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("validation",),
-    ("geometry", "io", "vis"),
+    ("geometry", "vis"),
+    ("io",),
     ("data", "synthetic"),
     ("eval", "viewer"),
     ("matching",),

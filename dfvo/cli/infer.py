@@ -25,7 +25,8 @@ from omegaconf import DictConfig
 
 from dfvo.cli.errors import EXPECTED_ERRORS, argv_value, guard_log_files, report_error, run_reporting_errors
 from dfvo.inference.config import register_configs
-from dfvo.inference.pipeline import RunInterrupted, run_inference
+from dfvo.inference.pipeline import run_inference
+from dfvo.inference.recording import RunInterrupted
 
 __all__ = ["main", "infer_app"]
 

@@ -26,9 +26,11 @@ import numpy as np
 
 from dfvo.data.image_io import DatasetError
 from dfvo.data.sequence import FrameSequence
+from dfvo.inference.api import SIZE_CHANGE, Odometry
+from dfvo.inference.assembly import build_observers
 from dfvo.inference.config import InferConfig
 from dfvo.inference.outputs import FramesCsv
-from dfvo.inference.pipeline import RunInterrupted, _observers, _SignalsToInterrupt, _write_frame
+from dfvo.inference.recording import RunInterrupted, SignalsToInterrupt, write_frame
 from dfvo.inference.report import finish_run
 from dfvo.io.trajectory import TrajectoryWriter
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
@@ -50,7 +52,6 @@ def run_live(cfg: InferConfig, data: Any, out: Path, device: str) -> dict[str, A
         ImportError: PyAV missing. DatasetError: the source cannot be opened or gave no frame. ValueError: a bad
         setting. RunInterrupted: after writing the outputs of a run stopped by SIGINT/SIGTERM.
     """
-    from dfvo.api import SIZE_CHANGE, Odometry
     from dfvo.data.stream import StreamReader
 
     for key in ("start", "end", "step"):
@@ -82,7 +83,7 @@ def run_live(cfg: InferConfig, data: Any, out: Path, device: str) -> dict[str, A
     refused: str | None = None
     start = time.perf_counter()
     try:
-        with _SignalsToInterrupt():
+        with SignalsToInterrupt():
             reader.start()
             for frame in reader:
                 try:
@@ -96,9 +97,9 @@ def run_live(cfg: InferConfig, data: Any, out: Path, device: str) -> dict[str, A
                     trajectory.append(np.eye(4))
                     poses.write(trajectory[0], frame.timestamp)
                     table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init), None, extra)
-                    observers = _observers(cfg, out, _first_frame(name, odo, odo.last_image, frame.timestamp))
+                    observers = build_observers(cfg, out, _first_frame(name, odo, odo.last_image, frame.timestamp))
                 else:
-                    _write_frame(odo.last_record, poses, table, trajectory, diagnostics, observers, frame.timestamp,
+                    write_frame(odo.last_record, poses, table, trajectory, diagnostics, observers, frame.timestamp,
                                  extra)
                 stamps.append(frame.timestamp)
                 if data.max_frames is not None and len(trajectory) >= int(data.max_frames):

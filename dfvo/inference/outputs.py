@@ -32,8 +32,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from dfvo.geometry.pose_covariance import COVARIANCE_FIELDS
 from dfvo.inference.config import InferConfig
-from dfvo.tracking.covariance import COVARIANCE_FIELDS
 from dfvo.tracking.diagnostics import DIAGNOSTIC_FIELDS, FrameDiagnostics
 
 __all__ = ["prepare_out_dir", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary", "OutDirBusy",

@@ -15,7 +15,6 @@ from __future__ import annotations
 import logging
 import signal
 import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,9 +22,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from dfvo.inference.config import InferConfig, PoseFormat, ViewerKind
+from dfvo.inference.assembly import build_observers, build_sources, resolve_device
+from dfvo.inference.config import InferConfig, PoseFormat
 from dfvo.inference.frames import build_sequence
-from dfvo.inference.loop import FrameRecord, track_sequence
+from dfvo.inference.live import run_live
+from dfvo.inference.loop import track_sequence
 from dfvo.inference.outputs import (
     FramesCsv,
     clear_previous_outputs,
@@ -33,33 +34,21 @@ from dfvo.inference.outputs import (
     prepare_out_dir,
     writing,
 )
+from dfvo.inference.recording import RunInterrupted, SignalsToInterrupt, stamp, write_frame
 from dfvo.inference.report import finish_run
-from dfvo.inference.rerun_observer import RerunObserver
-from dfvo.inference.tb_logging import TensorboardObserver
 from dfvo.inference.timing import StageTimer
 from dfvo.io.json_io import write_json
 from dfvo.io.trajectory import TrajectoryWriter
-from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, check_sources
 from dfvo.tracking import VisualOdometry
-from dfvo.tracking.covariance import covariance_to_row
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
-from dfvo.training.online_flow import OnlineFlowFinetuner
 from dfvo.validation import typed
 
-__all__ = ["RunInterrupted", "run_inference", "job_output_dir"]
+__all__ = ["RunInterrupted", "run_inference", "job_output_dir"]  # RunInterrupted is dfvo.inference.recording's
 
 log = logging.getLogger("dfvo.infer")
 
 # summary.json's "stopped_by" while tracking (replaced at the end; it stays when the process is killed outright)
 UNFINISHED = "unfinished: the run is still going, or its process was killed before it could write its summary"
-
-
-class RunInterrupted(KeyboardInterrupt):
-    """The run was stopped by a signal after its partial outputs were written; ``signum`` says which."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
 
 
 def job_output_dir(cfg: InferConfig) -> Path:
@@ -70,40 +59,6 @@ def job_output_dir(cfg: InferConfig) -> Path:
     if HydraConfig.initialized():
         return Path(HydraConfig.get().runtime.output_dir)
     return prepare_out_dir(cfg.out_dir)
-
-
-def resolve_device(name: str) -> str:
-    """``auto`` -> ``cuda`` when torch sees a CUDA device, else ``cpu``; other names as given.
-
-    Raises:
-        ValueError: a ``cuda`` device asked for where torch sees none (one line saying what to use instead).
-    """
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device={name}: CUDA is not available on this machine; use device=cpu or device=auto")
-    return name
-
-
-class _SignalsToInterrupt:
-    """While active, SIGTERM (and SIGINT) raise :class:`RunInterrupted` in the main thread."""
-
-    def __enter__(self) -> _SignalsToInterrupt:
-        self.previous: dict[int, Any] = {}
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            try:
-                self.previous[sig] = signal.signal(sig, self._raise)
-            except ValueError:  # not the main thread: keep the defaults
-                pass
-        return self
-
-    @staticmethod
-    def _raise(signum: int, frame: Any) -> None:
-        raise RunInterrupted(signum)
-
-    def __exit__(self, *exc: Any) -> None:
-        for sig, handler in self.previous.items():
-            signal.signal(sig, handler)
 
 
 def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
@@ -134,85 +89,13 @@ def _prepare_and_run(icfg: InferConfig, out: Path) -> dict[str, Any]:
     device = resolve_device(icfg.device)
     data = typed(icfg.data) if isinstance(icfg.data, DictConfig) else icfg.data
     if data.kind == "stream":  # a live source: frames as they arrive (dfvo.inference.live)
-        from dfvo.inference.live import run_live
-
         return run_live(icfg, data, out, device)
     seq = build_sequence(data, icfg.seq, icfg.img_res)
     if seq.length < 2:
         raise ValueError(f"sequence {seq.name} has {seq.length} frame(s); expected at least 2")
     src = build_sources(icfg, seq.world, device)
-    observers = _observers(icfg, out, seq)
+    observers = build_observers(icfg, out, seq)
     return _run(icfg, seq, src.flow, src.depth, src.refine, src.finetuner, observers, out, device, src.extra)
-
-
-@dataclass
-class Sources:
-    """What turns frames into flows and depths: the sources, the flow refinement (None: none), the online
-    finetuner (None: none) and what ``summary.json`` says about them (``extra``)."""
-
-    flow: Any
-    depth: Any
-    refine: Any
-    finetuner: Any
-    extra: dict[str, Any]
-
-
-def build_sources(icfg: InferConfig, world: Any, device: str) -> Sources:
-    """The flow and depth sources of ``icfg`` (``world``: the synthetic world for oracle sources, else None), every
-    missing checkpoint reported at once before any is loaded."""
-    check_sources(icfg.flow, icfg.depth, world)
-    flow_src = build_flow_source(icfg.flow, world, device)
-    depth_src = build_depth_source(icfg.depth, world, device)
-    refine = icfg.flow.refine if isinstance(flow_src, NetworkFlow) and icfg.flow.refine.iterations > 0 else None
-    finetuner = None
-    if icfg.online_finetune:
-        if not isinstance(flow_src, NetworkFlow):
-            raise ValueError(f"online_finetune=true needs flow=network (flow={flow_src.name} cannot be finetuned)")
-        finetuner = OnlineFlowFinetuner(flow_src.model, icfg.online)
-    extra = {"sources": {"flow": flow_src.name, "depth": depth_src.name,
-                         "flow_checkpoint": str(getattr(flow_src, "checkpoint", "")) or None,
-                         "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None,
-                         "flow_refinement": None if refine is None else asdict(refine)},
-             "online_finetune": finetuner is not None, "device": device}
-    return Sources(flow_src, depth_src, refine, finetuner, extra)
-
-
-def _observers(cfg: InferConfig, out: Path, seq: Any) -> list[Any]:
-    """The per-frame loggers the config asks for (TensorBoard, the Rerun recording)."""
-    observers: list[Any] = []
-    if cfg.viewer.kind == ViewerKind.rerun:
-        hw = tuple(seq.image(0).shape[-2:])
-        observers.append(RerunObserver(out / "run.rrd", seq.K, hw, gt_poses=seq.poses, spawn=cfg.viewer.spawn))
-    if cfg.tensorboard.enabled:
-        observers.append(TensorboardObserver(out / "tensorboard", cfg.tensorboard.every))
-    if cfg.output.rosbag:
-        observers.append(BagObserver(cfg, out, seq.poses, _stamp(seq, 0)))
-    return observers
-
-
-class BagObserver:
-    """``output.rosbag=true``: every frame into the ROS 2 bag ``OUT/bag/`` (:class:`dfvo.io.rosbag.OdometryBagWriter`;
-    frame 0 at once, at ``first_stamp``). A bag left in ``OUT/bag/`` by an earlier run is replaced."""
-
-    def __init__(self, cfg: InferConfig, out: Path, ground_truth: np.ndarray | None, first_stamp: float | None) -> None:
-        import shutil
-
-        from dfvo.io.rosbag import OdometryBagWriter, import_rosbags
-
-        import_rosbags()  # a missing extra fails before the old bag is removed
-        path = out / "bag"
-        if path.is_dir() and ((path / "metadata.yaml").exists() or any(path.glob("*.db3"))):
-            log.info("output.rosbag: replacing the bag of an earlier run in %s", path)
-            shutil.rmtree(path)
-        self.writer = OdometryBagWriter(path, cfg.output.ros_world_frame, cfg.output.ros_camera_frame, ground_truth)
-        self.writer.write(0, np.eye(4), None, first_stamp)
-
-    def on_frame(self, record: FrameRecord) -> None:
-        self.writer.write(record.index, record.result.T_w_cur.detach().cpu().double().numpy(),
-                          record.result.covariance, record.timestamp)
-
-    def close(self) -> None:
-        self.writer.close()
 
 
 def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any, finetuner: Any,
@@ -240,13 +123,13 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     start = time.perf_counter()
     try:
         with writing(pose_file):
-            poses.write(trajectory[0], _stamp(seq, 0))
+            poses.write(trajectory[0], stamp(seq, 0))
         with writing(table.path):
             table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init))
-        with _SignalsToInterrupt():
+        with SignalsToInterrupt():
             for record in track_sequence(seq, flow_src, depth_src, vo, refine=refine, batch_size=cfg.batch_size,
                                          timer=timer, device=device, finetuner=finetuner, overlap=cfg.overlap):
-                _write_frame(record, poses, table, trajectory, diagnostics, observers, _stamp(seq, record.index))
+                write_frame(record, poses, table, trajectory, diagnostics, observers, stamp(seq, record.index))
                 bar.update(1)
                 bar.set_postfix(fps=f"{len(diagnostics) / (time.perf_counter() - start):.2f}")
     except RunInterrupted as err:
@@ -289,24 +172,3 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     if failed is not None:
         raise failed
     return summary
-
-
-def _stamp(seq: Any, index: int) -> float | None:
-    return None if seq.timestamps is None else float(seq.timestamps[index])
-
-
-def _write_frame(record: FrameRecord, poses: TrajectoryWriter, table: FramesCsv, trajectory: list[np.ndarray],
-                 diagnostics: list[FrameDiagnostics], observers: list[Any], timestamp: float | None,
-                 extra: dict[str, Any] | None = None) -> None:
-    """Write one tracked frame everywhere (trajectory line, frames.csv row with its covariance, observers)."""
-    T_w = record.result.T_w_cur.detach().cpu().double().numpy()
-    record.timestamp = timestamp
-    with writing(poses.path):
-        poses.write(T_w, timestamp)
-    with writing(table.path):
-        table.write(record.result.diagnostics, record.stage_seconds,
-                    {**covariance_to_row(record.result.covariance), **(extra or {})})
-    trajectory.append(T_w)
-    diagnostics.append(record.result.diagnostics)
-    for obs in observers:
-        obs.on_frame(record)

@@ -29,6 +29,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from dfvo.geometry.pose_covariance import propagate_pose_covariance, ros_pose_covariance, ros_twist_covariance
+
 __all__ = ["OdometryBagWriter", "ROS_HINT", "NOMINAL_PERIOD_S", "TOPIC_ODOMETRY", "TOPIC_TF", "TOPIC_GROUND_TRUTH",
            "rotation_to_quaternion", "import_rosbags"]
 
@@ -157,8 +159,6 @@ class OdometryBagWriter:
               timestamp: float | None = None) -> None:
         """Frame ``index`` with its pose ``T_w_c`` (4,4) and its step's covariance (6,6; None or frame 0: zeros),
         taken at ``timestamp`` seconds (None: ``index * NOMINAL_PERIOD_S``, twist unknown). Frames come in order."""
-        from dfvo.tracking.covariance import propagate_pose_covariance, ros_pose_covariance, ros_twist_covariance
-
         T_w_c = np.asarray(T_w_c, dtype=np.float64)
         stamp = float(timestamp) if timestamp is not None else index * NOMINAL_PERIOD_S
         cov_step = torch.zeros(6, 6, dtype=torch.float64) if covariance is None else \

@@ -1,16 +1,7 @@
 """Covariance of each frame's relative motion: what a fusion filter (an EKF fusing wheel odometry or an IMU) needs.
 
-Convention (one for the whole package: ``frames.csv``, :class:`dfvo.api.Odometry`, the ROS bag):
-    The covariance is that of the error of the relative step ``T_prev_cur`` (4,4; maps points of the current camera
-    into the previous one), parametrised by the 6-vector ``xi = [phi (3, rad), dt (3, m)]`` with
-
-        R_true = exp([phi]_x) R_est,     t_true = t_est + dt,
-
-    both expressed in the axes of the previous camera (x right, y down, z forward). Order: ``[rx, ry, rz, tx, ty,
-    tz]`` (:data:`PARAMETERS`). :func:`step_error` computes ``xi`` from an estimate and the truth, so the normalised
-    estimation error squared is ``xi^T C^-1 xi`` (:func:`nees`; 6 degrees of freedom when ``C`` is calibrated).
-    The ROS messages use their own order (translation first) and frames: :func:`ros_pose_covariance` and
-    :func:`ros_twist_covariance`.
+Convention: :mod:`dfvo.geometry.pose_covariance` (the error 6-vector ``[phi, dt]`` of ``T_prev_cur`` in the previous
+    camera's axes, its NEES, propagation, ROS order and the ``frames.csv`` columns).
 
 Where each frame's covariance comes from (:func:`step_covariance`):
     - ``E`` (essential matrix + scale): rotation and translation direction from the normal equations of the Sampson
@@ -38,48 +29,16 @@ import math
 
 import torch
 
-__all__ = ["PARAMETERS", "step_covariance", "essential_normal_covariance", "essential_step_covariance",
-           "pnp_step_covariance", "length_log_variance", "constant_motion_covariance", "truncated_sigma",
-           "step_error", "nees", "propagate_pose_covariance", "ros_pose_covariance", "ros_twist_covariance",
-           "covariance_to_row", "covariance_from_row", "COVARIANCE_FIELDS"]
+from dfvo.geometry.essential_refine import skew
+from dfvo.geometry.pose_covariance import antisymmetric_vee, symmetric
 
-PARAMETERS = ("rx", "ry", "rz", "tx", "ty", "tz")
-"""Order of the 6-vector of the step's error (rotation vector in rad, translation in m; previous camera's axes)."""
-
-COVARIANCE_FIELDS = [f"cov_{PARAMETERS[i]}_{PARAMETERS[j]}" for i in range(6) for j in range(i, 6)]
-"""The 21 columns of the upper triangle (row by row) in ``frames.csv``."""
+__all__ = ["step_covariance", "essential_normal_covariance", "essential_step_covariance", "pnp_step_covariance",
+           "length_log_variance", "constant_motion_covariance", "truncated_sigma"]
 
 MIN_INLIERS = 8
 
 
 # ---------------------------------------------------------------------------------------------------- small helpers
-_GENERATORS = torch.tensor([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0],
-                            [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=torch.float64)  # skew(v).flatten() = v @ G
-
-
-def _skew(v: torch.Tensor) -> torch.Tensor:
-    """(...,3) -> (...,3,3) with ``skew(v) @ x = v x x``."""
-    return (v @ _GENERATORS.to(v)).reshape(*v.shape[:-1], 3, 3)
-
-
-def _vee_antisym(M: torch.Tensor) -> torch.Tensor:
-    """The rotation vector of a rotation matrix ``M`` near the identity, to first order (exact derivative at I)."""
-    A = 0.5 * (M - M.transpose(-1, -2))
-    return torch.stack([A[..., 2, 1], A[..., 0, 2], A[..., 1, 0]], -1)
-
-
-def _so3_log(R: torch.Tensor) -> torch.Tensor:
-    """Rotation vector (3,) of a rotation matrix (3,3), float64 (exact for angles below pi)."""
-    R = R.to(torch.float64)
-    cos = ((torch.diagonal(R).sum() - 1.0) / 2.0).clamp(-1.0, 1.0)
-    angle = torch.arccos(cos)
-    v = _vee_antisym(R) * 2.0  # 2 sin(angle) axis
-    s = torch.sin(angle)
-    if float(angle) < 1e-6:
-        return 0.5 * v
-    return v * (angle / (2.0 * s))
-
-
 def _tangent_basis(t: torch.Tensor) -> torch.Tensor:
     """(2,3) orthonormal basis of the plane perpendicular to the unit vector ``t`` (3,)."""
     helper = torch.zeros_like(t)
@@ -113,10 +72,6 @@ def _inv_sym(A: torch.Tensor) -> torch.Tensor | None:
     if not float(evals[0]) > 1e-12 * max(float(evals[-1]), 1e-300):
         return None
     return torch.cholesky_inverse(torch.linalg.cholesky(A))
-
-
-def _symmetric(C: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (C + C.transpose(-1, -2))
 
 
 def truncated_sigma(residuals: torch.Tensor, cutoff: float, dof: int, dims: int = 1, max_ratio: float = 10.0
@@ -192,7 +147,7 @@ def essential_normal_covariance(R: torch.Tensor, t: torch.Tensor, pts_prev: torc
     Xi, Xj = _normalised(pts_prev.to(torch.float64), K), _normalised(pts_cur.to(torch.float64), K)
     focal = 0.5 * float(K[0, 0] + K[1, 1])
     thr = threshold_px / focal
-    r0 = _sampson(_skew(t) @ R, Xi, Xj)  # (N,)
+    r0 = _sampson(skew(t) @ R, Xi, Xj)  # (N,)
     inl = torch.isfinite(r0) & (r0.abs() < thr)
     n = int(inl.sum())
     if n < MIN_INLIERS:
@@ -201,10 +156,10 @@ def essential_normal_covariance(R: torch.Tensor, t: torch.Tensor, pts_prev: torc
     basis = _tangent_basis(t)
 
     def residuals(p: torch.Tensor) -> torch.Tensor:  # (B,5) -> (B,n)
-        Rp = R @ (torch.eye(3, dtype=p.dtype) + _skew(p[:, :3]))
+        Rp = R @ (torch.eye(3, dtype=p.dtype) + skew(p[:, :3]))
         tp = t + p[:, 3:4] * basis[0] + p[:, 4:5] * basis[1]
         tp = tp / tp.norm(dim=-1, keepdim=True)
-        return _sampson(_skew(tp) @ Rp, Xi, Xj)
+        return _sampson(skew(tp) @ Rp, Xi, Xj)
 
     J = _jacobian(residuals, 5)  # (n,5)
     info = _inv_sym(J.T @ J)
@@ -244,15 +199,15 @@ def essential_step_covariance(T_cur_prev: torch.Tensor, pts_prev: torch.Tensor, 
     R_pc0, t_pc0 = R0.T, -R0.T @ tm
 
     def step(p: torch.Tensor) -> torch.Tensor:  # (B,6) parameters -> (B,6) error of T_prev_cur (module convention)
-        R = R0 @ (torch.eye(3, dtype=p.dtype) + _skew(p[:, :3]))
+        R = R0 @ (torch.eye(3, dtype=p.dtype) + skew(p[:, :3]))
         u = t0 + p[:, 3:4] * basis[0] + p[:, 4:5] * basis[1]
         t = s0 * torch.exp(p[:, 5:6]) * u / u.norm(dim=-1, keepdim=True)
         R_pc = R.transpose(-1, -2)
         t_pc = -(R_pc @ t[..., None])[..., 0]
-        return torch.cat([_vee_antisym(R_pc @ R_pc0.T), t_pc - t_pc0], -1)
+        return torch.cat([antisymmetric_vee(R_pc @ R_pc0.T), t_pc - t_pc0], -1)
 
     G = _jacobian(step, 6)
-    return _symmetric(G @ Cp @ G.T)
+    return symmetric(G @ Cp @ G.T)
 
 
 # ---------------------------------------------------------------------------------------------------- PnP frames
@@ -289,7 +244,7 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
     R0, t0 = T0[:3, :3], T0[:3, 3]
 
     def perturbed(p: torch.Tensor) -> torch.Tensor:  # (B,>=6) [rho, phi, ...] -> (B,4,4): left perturbation
-        dR = torch.eye(3, dtype=p.dtype) + _skew(p[:, 3:6])
+        dR = torch.eye(3, dtype=p.dtype) + skew(p[:, 3:6])
         T = torch.eye(4, dtype=p.dtype).repeat(p.shape[0], 1, 1)
         T[:, :3, :3] = dR @ R0
         T[:, :3, 3] = (dR @ t0[:, None])[..., 0] + p[:, :3]
@@ -309,10 +264,10 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
         T = perturbed(p)
         R_pc = T[:, :3, :3].transpose(-1, -2)
         t_pc = -(R_pc @ (T[:, :3, 3] * torch.exp(p[:, 6:7]))[..., None])[..., 0]
-        return torch.cat([_vee_antisym(R_pc @ R_pc0.T), t_pc - t_pc0], -1)
+        return torch.cat([antisymmetric_vee(R_pc @ R_pc0.T), t_pc - t_pc0], -1)
 
     G = _jacobian(step, 7)
-    return _symmetric(G @ Cp @ G.T)
+    return symmetric(G @ Cp @ G.T)
 
 
 # ---------------------------------------------------------------------------------------------------- every frame
@@ -374,73 +329,3 @@ def length_log_variance(estimate: object | None, prior_pxx: float, length: float
     return float(prior_pxx)
 
 
-# ---------------------------------------------------------------------------------------------------- using it
-def step_error(T_est: torch.Tensor, T_true: torch.Tensor) -> torch.Tensor:
-    """The error 6-vector ``[phi, dt]`` (module convention) of an estimated step ``T_est`` (4,4) against the true
-    ``T_true`` (4,4): ``R_true = exp([phi]) R_est``, ``t_true = t_est + dt``."""
-    T_est, T_true = torch.as_tensor(T_est, dtype=torch.float64), torch.as_tensor(T_true, dtype=torch.float64)
-    phi = _so3_log(T_true[:3, :3] @ T_est[:3, :3].T)
-    return torch.cat([phi, T_true[:3, 3] - T_est[:3, 3]])
-
-
-def nees(error: torch.Tensor, covariance: torch.Tensor) -> float:
-    """Normalised estimation error squared ``e^T C^-1 e`` (chi-square with len(e) degrees of freedom when ``C`` is
-    the error's covariance)."""
-    e = torch.as_tensor(error, dtype=torch.float64)
-    C = torch.as_tensor(covariance, dtype=torch.float64)
-    return float(e @ torch.linalg.solve(C, e))
-
-
-def propagate_pose_covariance(cov_w_prev: torch.Tensor, T_w_prev: torch.Tensor, cov_step: torch.Tensor,
-                              T_prev_cur: torch.Tensor) -> torch.Tensor:
-    """Covariance of ``T_w_cur = T_w_prev @ T_prev_cur`` to first order, steps independent.
-
-    Both pose covariances use the module's convention with the world's axes (``R_true = exp([phi]) R``, ``t_true =
-    t + dt`` in world coordinates); ``cov_step`` is the step's (previous camera's axes).
-    """
-    Tw = torch.as_tensor(T_w_prev, dtype=torch.float64)
-    Ts = torch.as_tensor(T_prev_cur, dtype=torch.float64)
-    Rw = Tw[:3, :3]
-    F = torch.eye(6, dtype=torch.float64)
-    F[3:, :3] = -_skew(Rw @ Ts[:3, 3])
-    G = torch.zeros(6, 6, dtype=torch.float64)
-    G[:3, :3], G[3:, 3:] = Rw, Rw
-    return _symmetric(F @ torch.as_tensor(cov_w_prev, dtype=torch.float64) @ F.T + G @ cov_step @ G.T)
-
-
-def ros_pose_covariance(cov_w: torch.Tensor) -> list[float]:
-    """A world-pose covariance (module convention, world axes) as the 36 row-major numbers of
-    ``geometry_msgs/PoseWithCovariance``: order (x, y, z, rotation about X, Y, Z), fixed (parent-frame) axes."""
-    C = torch.as_tensor(cov_w, dtype=torch.float64)
-    order = [3, 4, 5, 0, 1, 2]
-    return C[order][:, order].reshape(-1).tolist()
-
-
-def ros_twist_covariance(cov_step: torch.Tensor, T_prev_cur: torch.Tensor, dt: float) -> list[float]:
-    """The step's covariance as that of ``geometry_msgs/TwistWithCovariance`` in the child (current camera) frame:
-    velocity = step / ``dt``, rotated into the current camera's axes, order (vx, vy, vz, wx, wy, wz)."""
-    Rt = torch.as_tensor(T_prev_cur, dtype=torch.float64)[:3, :3].T
-    G = torch.zeros(6, 6, dtype=torch.float64)
-    G[:3, 3:], G[3:, :3] = Rt, Rt  # (v, w) from (phi, dt)
-    C = G @ torch.as_tensor(cov_step, dtype=torch.float64) @ G.T / (dt * dt)
-    return _symmetric(C).reshape(-1).tolist()
-
-
-def covariance_to_row(cov: torch.Tensor | None) -> dict[str, float | None]:
-    """The 21 upper-triangle entries (:data:`COVARIANCE_FIELDS`) of a (6,6) covariance, for ``frames.csv``."""
-    if cov is None:
-        return {k: None for k in COVARIANCE_FIELDS}
-    C = torch.as_tensor(cov, dtype=torch.float64)
-    iu = torch.triu_indices(6, 6)
-    return dict(zip(COVARIANCE_FIELDS, C[iu[0], iu[1]].tolist(), strict=True))
-
-
-def covariance_from_row(row: dict[str, object]) -> torch.Tensor | None:
-    """The (6,6) covariance of a ``frames.csv`` row (None when the row has none, e.g. frame 0)."""
-    values = [row.get(k) for k in COVARIANCE_FIELDS]
-    if any(v in (None, "") for v in values):
-        return None
-    C = torch.zeros(6, 6, dtype=torch.float64)
-    iu = torch.triu_indices(6, 6)
-    C[iu[0], iu[1]] = torch.tensor([float(v) for v in values], dtype=torch.float64)
-    return C + C.T - torch.diag(torch.diagonal(C))

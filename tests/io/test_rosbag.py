@@ -17,6 +17,12 @@ import torch
 
 pytest.importorskip("rosbags", reason="output.rosbag needs the ros extra (rosbags)")
 
+from dfvo.geometry.pose_covariance import (  # noqa: E402
+    covariance_from_row,
+    propagate_pose_covariance,
+    ros_pose_covariance,
+    ros_twist_covariance,
+)
 from dfvo.io.rosbag import (  # noqa: E402
     NOMINAL_PERIOD_S,
     TOPIC_GROUND_TRUTH,
@@ -24,12 +30,6 @@ from dfvo.io.rosbag import (  # noqa: E402
     TOPIC_TF,
     OdometryBagWriter,
     rotation_to_quaternion,
-)
-from dfvo.tracking.covariance import (  # noqa: E402
-    covariance_from_row,
-    propagate_pose_covariance,
-    ros_pose_covariance,
-    ros_twist_covariance,
 )
 
 REPO = Path(__file__).resolve().parents[2]

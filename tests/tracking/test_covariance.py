@@ -9,20 +9,19 @@ import numpy as np
 import pytest
 import torch
 
-from dfvo.synthetic import SyntheticWorld
-from dfvo.tracking import TrackerConfig, VisualOdometry
-from dfvo.tracking.config import CovarianceConfig, ScaleConfig, ScaleFilterConfig, SelectionConfig
-from dfvo.tracking.covariance import (
+from dfvo.geometry.pose_covariance import (
     COVARIANCE_FIELDS,
-    constant_motion_covariance,
     covariance_from_row,
     covariance_to_row,
     nees,
     propagate_pose_covariance,
     ros_pose_covariance,
     step_error,
-    truncated_sigma,
 )
+from dfvo.synthetic import SyntheticWorld
+from dfvo.tracking import TrackerConfig, VisualOdometry
+from dfvo.tracking.config import CovarianceConfig, ScaleConfig, ScaleFilterConfig, SelectionConfig
+from dfvo.tracking.covariance import constant_motion_covariance, truncated_sigma
 
 torch.set_num_threads(1)
 
