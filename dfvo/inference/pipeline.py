@@ -118,6 +118,10 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
     if icfg.online_finetune:
         if not isinstance(flow_src, NetworkFlow):
             raise ValueError(f"online_finetune=true needs flow=network (flow={flow_src.name} cannot be finetuned)")
+        if flow_src.runtime != "torch":
+            raise ValueError(f"online_finetune=true needs flow.runtime.kind=torch (flow.runtime.kind="
+                             f"{flow_src.runtime} runs an exported copy of the network, which finetuning would not "
+                             "update)")
         from dfvo.training.online_flow import OnlineFlowFinetuner
 
         finetuner = OnlineFlowFinetuner(flow_src.model, icfg.online)
@@ -125,7 +129,9 @@ def run_inference(cfg: DictConfig | InferConfig) -> dict[str, Any]:
     extra = {"sources": {"flow": flow_src.name, "depth": depth_src.name,
                          "flow_checkpoint": str(getattr(flow_src, "checkpoint", "")) or None,
                          "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None,
-                         "flow_refinement": None if refine is None else asdict(refine)},
+                         "flow_refinement": None if refine is None else asdict(refine),
+                         "flow_runtime": getattr(flow_src, "runtime", None),
+                         "depth_runtime": getattr(depth_src, "runtime", None)},
              "online_finetune": finetuner is not None, "device": device}
     return _run(icfg, seq, flow_src, depth_src, refine, finetuner, observers, out, device, extra)
 
