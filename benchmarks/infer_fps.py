@@ -9,23 +9,34 @@ flow, refine, depth, tracker, the tracker's own split into selection / E-tracker
 ``1000 / fps``), ``cpu_ms_per_frame`` (process CPU time: ``loop``, everything per frame, and each stage; it follows
 the work, not a shared machine's load: compare it in the serial loop, ``--overlap none`` or ``load``),
 ``work_per_frame`` (load-independent counts: refined pixel-iterations, network input pixels,
-correspondences), the RPE/ATE of the run, torch threads, machine and the 1-minute load average before and after
-(the machine may be shared: compare variants back to back, and trust the work counts over the clock).
+correspondences), the RPE/ATE of the run, the runtime that ran each network (``runtime``: torch, onnxruntime,
+openvino), torch threads, machine and the 1-minute load average before and after (the machine may be shared: compare
+variants back to back, and trust the work counts over the clock).
+
+Default: KITTI odometry 07, all frames, the shipped networks (``--root``: ``$DFVO_KITTI_ODOM_ROOT``, else
+``../shared/data/kitti_odom`` beside the repository).
+
+``--compare A B``: two configurations (each a quoted list of infer.py overrides, ``""`` for the defaults) run back
+to back in one process: one short warm-up run of each (``--warmup-frames``, not reported), then ``--rounds`` rounds
+in alternating order (A B, B A, ...), so both see the same machine load. Prints ``{"compare": {A: report, B:
+report}, "fps_ratio": median over rounds of FPS(B) / FPS(A), "fps_ratio_rounds": [...], "cpu_ratio": the same for
+the loop's CPU ms per frame}``; each report is the fastest of its rounds, with every round's FPS in ``fps_runs``.
+On a shared machine the ratio is the number to quote.
 
 Sources:
     --sources oracle          true flow/depth of the synthetic world (their time is the renderer's)
-    --sources network         checkpoints given by --flow-ckpt / --depth-ckpt
+    --sources network         checkpoints given by --flow-ckpt / --depth-ckpt (default)
     --sources random-network  FlowNet/DepthNet with random weights (speed only: the poses are meaningless)
 
-Usage: python benchmarks/infer_fps.py [--frames 20] [--height 192] [--width 640] [--threads 2]
-       [--sources oracle|network|random-network] [--data synthetic|kitti_odom --root ROOT --seq 06]
+Usage: python benchmarks/infer_fps.py [--frames N] [--height 192] [--width 640] [--threads 2]
+       [--sources oracle|network|random-network] [--data synthetic|kitti_odom --root ROOT --seq 07]
        [--repeat N] [--overlap none|load|full] [--no-overlap] [--device cpu|cuda|auto]
-       [--overrides flow.refine.iterations=5 ...]
+       [--overrides flow.refine.iterations=5 ...] [--compare "A overrides" "B overrides" [--rounds 2]]
 
-KITTI 06 with the default configuration (issue 15's figure):
+KITTI 07 with the defaults (issue 27's figure), and PyTorch against OpenVINO back to back:
 
-    OMP_NUM_THREADS=2 python benchmarks/infer_fps.py --data kitti_odom --root ../shared/data/kitti_odom --seq 06 \
-        --frames 51 --sources network --repeat 2
+    OMP_NUM_THREADS=2 python benchmarks/infer_fps.py
+    OMP_NUM_THREADS=2 python benchmarks/infer_fps.py --compare "runtime=torch" "runtime=openvino"
 """
 
 from __future__ import annotations
@@ -34,6 +45,8 @@ import argparse
 import json
 import os
 import platform
+import shlex
+import statistics
 import tempfile
 import time
 from collections.abc import Iterator
@@ -48,6 +61,7 @@ from dfvo.inference.pipeline import run_inference
 from dfvo.inference.timing import StageTimer
 
 REPO = Path(__file__).resolve().parents[1]
+KITTI_ODOM = os.environ.get("DFVO_KITTI_ODOM_ROOT") or str(REPO.parent / "shared" / "data" / "kitti_odom")
 
 
 def _random_checkpoints(folder: Path, variant: str) -> tuple[Path, Path]:
@@ -65,32 +79,75 @@ def _random_checkpoints(folder: Path, variant: str) -> tuple[Path, Path]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--frames", type=int, default=20)
+    p.add_argument("--frames", type=int, default=None, help="frames (default: all of a KITTI sequence, 20 "
+                   "synthetic)")
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--batch-size", type=int, default=4)
-    p.add_argument("--sources", choices=["oracle", "network", "random-network", "dis"], default="oracle")
+    p.add_argument("--sources", choices=["oracle", "network", "random-network", "dis"], default="network")
     p.add_argument("--flow-ckpt", default="checkpoints/flow.safetensors")
     p.add_argument("--depth-ckpt", default="checkpoints/depth.safetensors")
     p.add_argument("--flow-variant", default="default")
     p.add_argument("--depth-scale", type=float, default=1.0)
-    p.add_argument("--data", default="synthetic")
-    p.add_argument("--root", default=None)
-    p.add_argument("--seq", default=None)
+    p.add_argument("--data", default="kitti_odom")
+    p.add_argument("--root", default=None, help=f"dataset root (kitti_odom default: {KITTI_ODOM})")
+    p.add_argument("--seq", default=None, help="sequence (kitti_odom default: 07)")
     p.add_argument("--overrides", nargs="*", default=[], help="extra infer.yaml overrides (tracker=pnp ...)")
     p.add_argument("--repeat", type=int, default=1, help="runs; the fastest is reported (each in fps_runs)")
     p.add_argument("--overlap", choices=[m.value for m in OverlapMode], default=None,
                    help=f"loop threads (infer.py overlap=); default {InferConfig.overlap.value!r}")
     p.add_argument("--no-overlap", action="store_true", help="the serial loop: --overlap none")
     p.add_argument("--device", default="cpu", help="cpu | cuda | auto")
+    p.add_argument("--compare", nargs=2, default=None, metavar=("A", "B"),
+                   help="two quoted override lists run back to back, alternating (see the module docstring)")
+    p.add_argument("--rounds", type=int, default=2, help="--compare: rounds of A and B (alternating order)")
+    p.add_argument("--warmup-frames", type=int, default=9, help="--compare: frames of each warm-up run")
     args = p.parse_args()
+    if args.data == "kitti_odom":
+        args.root = args.root or KITTI_ODOM
+        args.seq = args.seq or "07"
+    elif args.frames is None:
+        args.frames = 20
     torch.set_num_threads(args.threads)
     args.overlap = "none" if args.no_overlap else (args.overlap or InferConfig.overlap.value)
     load_before = os.getloadavg()[0]
+    if args.compare:
+        print(json.dumps(_compare(args, load_before), indent=2))
+        return
     runs = [_run_once(args) for _ in range(max(1, args.repeat))]
     summary, cfg = max(runs, key=lambda r: r[0]["fps"])
     print(json.dumps(_report(args, summary, cfg, [r[0]["fps"] for r in runs], load_before), indent=2))
+
+
+def _compare(args: argparse.Namespace, load_before: float) -> dict[str, object]:
+    """Configurations A and B back to back: a warm-up run of each, then alternating rounds (A B, B A, ...)."""
+    names = list(args.compare)
+    extra = {name: shlex.split(name) for name in names}
+    base = list(args.overrides)
+
+    def run(name: str, frames: int | None) -> tuple[dict, object]:
+        ns = argparse.Namespace(**{**vars(args), "overrides": base + extra[name], "frames": frames})
+        return _run_once(ns)
+
+    for name in names:  # warm-up: exports, caches, first-touch allocations; not reported
+        run(name, args.warmup_frames)
+    runs: dict[str, list[tuple[dict, object]]] = {name: [] for name in names}
+    for r in range(max(1, args.rounds)):
+        for name in (names if r % 2 == 0 else names[::-1]):
+            runs[name].append(run(name, args.frames))
+    a, b = (runs[n] for n in names)
+    fps_ratios = [rb[0]["fps"] / ra[0]["fps"] for ra, rb in zip(a, b)]
+    cpu_ratios = [rb[0]["cpu_ms_per_frame"]["loop"] / ra[0]["cpu_ms_per_frame"]["loop"] for ra, rb in zip(a, b)]
+    reports = {}
+    for name in names:
+        summary, cfg = max(runs[name], key=lambda r: r[0]["fps"])
+        args_n = argparse.Namespace(**{**vars(args), "overrides": base + extra[name]})
+        reports[name] = _report(args_n, summary, cfg, [r[0]["fps"] for r in runs[name]], load_before)
+    return {"compare": reports, "order": names, "rounds": max(1, args.rounds),
+            "fps_ratio": round(statistics.median(fps_ratios), 3), "fps_ratio_rounds": [round(x, 3) for x in fps_ratios],
+            "cpu_ratio": round(statistics.median(cpu_ratios), 3), "cpu_ratio_rounds": [round(x, 3) for x in cpu_ratios],
+            "load_avg_before": round(load_before, 2), "load_avg_after": round(os.getloadavg()[0], 2)}
 
 
 class _LoopMeter:
@@ -120,7 +177,7 @@ def _run_once(args: argparse.Namespace) -> tuple[dict, object]:
         if args.data == "synthetic":
             ov.append(f"data.num_frames={args.frames}")
         else:
-            ov += [f"data.root={args.root}", f"data.end={args.frames}"]
+            ov += [f"data.root={args.root}"] + ([] if args.frames is None else [f"data.end={args.frames}"])
         if args.seq is not None:
             ov.append(f"seq={args.seq}")
         if args.sources == "oracle":  # explicit: the default `auto` would pick the shipped checkpoints
@@ -174,6 +231,8 @@ def _report(args: argparse.Namespace, summary: dict, cfg: object, fps_runs: list
         "cpu_ms_per_frame": summary["cpu_ms_per_frame"],
         "work_per_frame": _work(cfg, summary),
         "rpe_m": metrics.get("rpe_m"), "rpe_deg": metrics.get("rpe_deg"), "ate_m": metrics.get("ate_m"),
+        "runtime": {k: summary.get("sources", {}).get(f"{k}_runtime") for k in ("flow", "depth")},
+        "overrides": list(args.overrides),
         "fallback": summary["fallback"], "torch_threads": torch.get_num_threads(),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "load_avg_before": round(load_before, 2), "load_avg_after": round(os.getloadavg()[0], 2),

@@ -63,11 +63,17 @@ def build_sources(icfg: InferConfig, world: Any, device: str) -> Sources:
     if icfg.online_finetune:
         if not isinstance(flow_src, NetworkFlow):
             raise ValueError(f"online_finetune=true needs flow=network (flow={flow_src.name} cannot be finetuned)")
+        if flow_src.runtime != "torch":
+            raise ValueError(f"online_finetune=true needs flow.runtime.kind=torch (flow.runtime.kind="
+                             f"{flow_src.runtime} runs an exported copy of the network, which finetuning would not "
+                             "update)")
         finetuner = OnlineFlowFinetuner(flow_src.model, icfg.online)
     extra = {"sources": {"flow": flow_src.name, "depth": depth_src.name,
                          "flow_checkpoint": str(getattr(flow_src, "checkpoint", "")) or None,
                          "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None,
-                         "flow_refinement": None if refine is None else asdict(refine)},
+                         "flow_refinement": None if refine is None else asdict(refine),
+                         "flow_runtime": getattr(flow_src, "runtime", None),
+                         "depth_runtime": getattr(depth_src, "runtime", None)},
              "online_finetune": finetuner is not None, "device": device}
     return Sources(flow_src, depth_src, refine, finetuner, extra)
 

@@ -88,7 +88,7 @@ def build_flow_source(cfg: FlowSourceConfig, world: Any = None, device: str = "c
         return OracleFlow(world)
     if kind == FlowSourceKind.network:
         return NetworkFlow(find_checkpoint(cfg.checkpoint, "flow.checkpoint"), cfg.variant, device=device,
-                           input_size=cfg.input_size)
+                           input_size=cfg.input_size, runtime=cfg.runtime)
     if kind == FlowSourceKind.dis:
         return DISFlow(preset=cfg.preset, device=device)
     raise ValueError(f"flow.source={kind!r}; expected one of {[k.value for k in FlowSourceKind]}")
@@ -101,5 +101,6 @@ def build_depth_source(cfg: DepthSourceConfig, world: Any = None, device: str = 
         return OracleDepth(world)
     if kind == DepthSourceKind.network:
         return NetworkDepth(find_checkpoint(cfg.checkpoint, "depth.checkpoint"), cfg.depth_scale, cfg.min_depth,
-                            cfg.max_depth, device=device, input_size=cfg.input_size, flip_average=cfg.flip_average)
+                            cfg.max_depth, device=device, input_size=cfg.input_size, flip_average=cfg.flip_average,
+                            runtime=cfg.runtime)
     raise ValueError(f"depth.source={kind!r}; expected one of {[k.value for k in DepthSourceKind]}")

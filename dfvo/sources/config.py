@@ -11,7 +11,8 @@ from enum import StrEnum
 
 from dfvo.matching.flow_refinement import FlowRefinementConfig
 
-__all__ = ["FlowSourceKind", "DepthSourceKind", "DisPreset", "FlowSourceConfig", "DepthSourceConfig"]
+__all__ = ["FlowSourceKind", "DepthSourceKind", "DisPreset", "RuntimeKind", "RuntimeConfig", "FlowSourceConfig",
+           "DepthSourceConfig"]
 
 
 class FlowSourceKind(StrEnum):
@@ -41,6 +42,34 @@ class DisPreset(StrEnum):
     medium = "medium"
 
 
+class RuntimeKind(StrEnum):
+    """What runs a network: ``torch`` (PyTorch eager, always available: the fallback), ``onnxruntime`` or
+    ``openvino`` (the network exported to ONNX from its checkpoint and run by that library on the CPU; both come
+    with the ``fast`` extra, ``pip install "dfvo[fast]"``; :mod:`dfvo.sources.runtime`)."""
+
+    torch = "torch"
+    onnxruntime = "onnxruntime"
+    openvino = "openvino"
+
+
+@dataclass
+class RuntimeConfig:
+    """How a network source runs its network (``flow.runtime`` / ``depth.runtime``; ``runtime=openvino`` sets both).
+
+    Attributes:
+        kind: see :class:`RuntimeKind`.
+        precision: ``fp32``, or ``bf16`` (``openvino`` only, on CPUs with bf16 instructions: AVX512-BF16 or AMX,
+            read from the CPU's flags; about half the time of fp32 there, outputs within ~0.5 % of fp32:
+            ``docs/speed.md``).
+        cache_dir: folder of the exported models (made from the checkpoint on first use and checked against it on
+            every later use); None: ``$DFVO_CACHE_DIR/runtime``, else ``~/.cache/dfvo/runtime``.
+    """
+
+    kind: RuntimeKind = RuntimeKind.torch
+    precision: str = "fp32"
+    cache_dir: str | None = None
+
+
 @dataclass
 class FlowSourceConfig:
     """Where forward and backward flow come from.
@@ -53,6 +82,7 @@ class FlowSourceConfig:
         input_size: [h, w] the network runs at; None: the checkpoint's metadata, else the working size.
         preset: ``dis`` only: OpenCV DIS preset ``ultrafast``, ``fast`` or ``medium``.
         refine: photometric sub-pixel refinement applied to the network's flow (never to oracle or DIS flow).
+        runtime: what runs the network (PyTorch, ONNX Runtime, OpenVINO); see :class:`RuntimeConfig`.
     """
 
     source: FlowSourceKind = FlowSourceKind.auto
@@ -61,6 +91,7 @@ class FlowSourceConfig:
     input_size: list[int] | None = None
     preset: DisPreset = DisPreset.medium
     refine: FlowRefinementConfig = field(default_factory=FlowRefinementConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
 
 
 @dataclass
@@ -74,6 +105,7 @@ class DepthSourceConfig:
         min_depth, max_depth: the network's depth range (metres).
         input_size: [h, w] the network runs at; None: the checkpoint's metadata, else the working size.
         flip_average: also run on the mirrored image and blend the inverse depths (2x depth time).
+        runtime: what runs the network; see :class:`RuntimeConfig`.
     """
 
     source: DepthSourceKind = DepthSourceKind.auto
@@ -83,3 +115,4 @@ class DepthSourceConfig:
     max_depth: float = 100.0
     input_size: list[int] | None = None
     flip_average: bool = False
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)

@@ -27,7 +27,7 @@ from dfvo.geometry.camera import resize_flow
 from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
-from dfvo.sources.config import DepthSourceConfig
+from dfvo.sources.config import DepthSourceConfig, RuntimeConfig, RuntimeKind
 
 __all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
 
@@ -56,6 +56,40 @@ def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
 
 
+class _Runtime:
+    """The runtime that runs a source's network: PyTorch itself, or an exported model (:mod:`dfvo.sources.runtime`), one
+    per network input size, exported on first use and checked against the checkpoint (stale exports are redone)."""
+
+    def __init__(self, config: RuntimeConfig | None, what: str, device: torch.device) -> None:
+        self.config = config or RuntimeConfig()
+        self.kind = RuntimeKind(self.config.kind)
+        self.what = what
+        self.engines: dict[tuple[int, int], Any] = {}
+        self.name = self.kind.value + ("" if self.config.precision == "fp32" else f"-{self.config.precision}")
+        if self.kind != RuntimeKind.torch:
+            from dfvo.sources.runtime.engines import require_runtime
+
+            require_runtime(self.kind.value, f"{what}.runtime.kind")
+            if device.type != "cpu":
+                raise ValueError(f"{what}.runtime.kind={self.kind.value} runs on the CPU, not on device={device}; "
+                                 f"use device=cpu or {what}.runtime.kind=torch")
+        if self.kind != RuntimeKind.torch or self.config.precision != "fp32":
+            from dfvo.sources.runtime.engines import check_precision
+
+            check_precision(self.kind.value, self.config.precision, f"{what}.runtime.precision")
+
+    def engine(self, spec: Any, model: torch.nn.Module) -> Any:
+        """The engine of ``spec`` (an :class:`dfvo.sources.runtime.export.ExportSpec`), exported and built on first
+        use."""
+        if spec.input_size not in self.engines:
+            from dfvo.sources.runtime.engines import build_engine
+            from dfvo.sources.runtime.export import exported_model
+
+            path = exported_model(spec, lambda: model, self.config.cache_dir, f"{self.what}.runtime.cache_dir")
+            self.engines[spec.input_size] = build_engine(self.kind.value, path, precision=self.config.precision)
+        return self.engines[spec.input_size]
+
+
 class NetworkFlow:
     """Forward and backward flow from a trained :class:`~dfvo.models.flow_net.FlowNet` (one batch of 2B pairs).
 
@@ -65,12 +99,13 @@ class NetworkFlow:
             :data:`VARIANTS` whose parameters match the checkpoint.
         device: torch device.
         input_size: (h, w) the network runs at (see module docstring); None: checkpoint metadata or image size.
+        runtime: what runs the network (None: PyTorch); see :mod:`dfvo.sources.runtime`.
     """
 
     name = "network"
 
     def __init__(self, checkpoint: str | Path, variant: str | None = None, device: str = "cpu",
-                 input_size: Any = None) -> None:
+                 input_size: Any = None, runtime: RuntimeConfig | None = None) -> None:
         self.checkpoint = Path(checkpoint)
         meta = {}
         if self.checkpoint.is_file():
@@ -83,6 +118,27 @@ class NetworkFlow:
         self.device = torch.device(device)
         self.input_size = resolve_input_size(input_size, meta, "flow")
         self._checked_output = False
+        self._runtime = _Runtime(runtime, "flow", self.device)
+        if self._runtime.kind != RuntimeKind.torch and self.input_size is not None:
+            self._runtime.engine(self.export_spec(self.input_size), self.model)  # export now, not mid-run
+
+    @property
+    def runtime(self) -> str:
+        """What runs the network: ``torch``, ``onnxruntime`` or ``openvino`` (``openvino-bf16`` in bf16)."""
+        return self._runtime.name
+
+    def export_spec(self, input_size: tuple[int, int]) -> Any:
+        """The :class:`dfvo.sources.runtime.export.ExportSpec` of this network at ``input_size`` (h, w)."""
+        from dfvo.sources.runtime.export import ExportSpec
+
+        return ExportSpec("flow", self.checkpoint, tuple(input_size), variant=self.variant)
+
+    def forward_backward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``FlowNet.forward_backward`` of images (B,3,h,w) already at the network's input size, by the runtime."""
+        if self._runtime.kind == RuntimeKind.torch:
+            return self.model.forward_backward(img1, img2)
+        fwd, bwd = self._runtime.engine(self.export_spec(tuple(img1.shape[-2:])), self.model)(img1, img2)
+        return fwd.to(img1.device), bwd.to(img1.device)
 
     def _guess_variant(self, device: str) -> str | None:
         """The first FlowNet variant whose parameters the checkpoint holds (None: none does; load_weights then
@@ -105,7 +161,7 @@ class NetworkFlow:
         KORNIA_CHECK_SHAPE(images_prev, ["B", "3", "H", "W"])
         size = tuple(images_prev.shape[-2:])
         with torch.no_grad():
-            fwd, bwd = self.model.forward_backward(*self.network_inputs(images_prev, images_cur))
+            fwd, bwd = self.forward_backward(*self.network_inputs(images_prev, images_cur))
         if not self._checked_output:  # the first batch: finite weights can still give a NaN flow
             if not (torch.isfinite(fwd).all() and torch.isfinite(bwd).all()):
                 raise CheckpointError(f"flow.checkpoint={self.checkpoint}: the network's flow of the first frames "
@@ -149,6 +205,7 @@ class NetworkDepth:
             rounded to multiples of 32.
         flip_average: also run the network on the mirrored images and blend the two inverse depths (monodepth's
             test-time post-processing; see :func:`blend_flipped_inverse_depth`); twice the network time.
+        runtime: what runs the network (None: PyTorch); see :mod:`dfvo.sources.runtime`.
     """
 
     name = "network"
@@ -156,7 +213,7 @@ class NetworkDepth:
     def __init__(self, checkpoint: str | Path, depth_scale: float = DepthSourceConfig.depth_scale,
                  min_depth: float = DepthSourceConfig.min_depth, max_depth: float = DepthSourceConfig.max_depth,
                  device: str = "cpu", input_size: Any = None,
-                 flip_average: bool = DepthSourceConfig.flip_average) -> None:
+                 flip_average: bool = DepthSourceConfig.flip_average, runtime: RuntimeConfig | None = None) -> None:
         if depth_scale <= 0:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)
@@ -166,22 +223,49 @@ class NetworkDepth:
         self.device = torch.device(device)
         self.input_size = resolve_input_size(input_size, meta, "depth")
         self.flip_average = bool(flip_average)
+        self._runtime = _Runtime(runtime, "depth", self.device)
+        if self._runtime.kind != RuntimeKind.torch and self.input_size is not None:
+            self._runtime.engine(self.export_spec(self.network_size(*self.input_size)), self.model)
+
+    @property
+    def runtime(self) -> str:
+        """What runs the network: ``torch``, ``onnxruntime`` or ``openvino`` (``openvino-bf16`` in bf16)."""
+        return self._runtime.name
+
+    @staticmethod
+    def network_size(h: int, w: int) -> tuple[int, int]:
+        """The size the network runs at for a requested (h, w): multiples of 32, at least 64."""
+        return max(64, round(h / 32) * 32), max(64, round(w / 32) * 32)
+
+    def export_spec(self, input_size: tuple[int, int]) -> Any:
+        """The :class:`dfvo.sources.runtime.export.ExportSpec` of this network at ``input_size`` (h, w; multiples of
+        32)."""
+        from dfvo.sources.runtime.export import ExportSpec
+
+        return ExportSpec("depth", self.checkpoint, tuple(input_size), min_depth=self.model.min_depth,
+                          max_depth=self.model.max_depth)
+
+    def network_depth(self, inputs: torch.Tensor) -> torch.Tensor:
+        """``DepthNet.depth`` (B,1,h,w) of images (B,3,h,w) already at the network's input size, by the runtime."""
+        if self._runtime.kind == RuntimeKind.torch:
+            return self.model.depth(inputs)
+        return self._runtime.engine(self.export_spec(tuple(inputs.shape[-2:])), self.model)(inputs)[0].to(
+            inputs.device)
 
     def __call__(self, images: torch.Tensor, indices: list[int] | None = None) -> torch.Tensor:
         """Depth (B,1,H,W) in metres of images (B,3,H,W), computed at the network's input size (multiples of 32)
         and resized back."""
         KORNIA_CHECK_SHAPE(images, ["B", "3", "H", "W"])
         h, w = images.shape[-2:]
-        nh, nw = self.input_size or (h, w)
-        hp, wp = max(64, round(nh / 32) * 32), max(64, round(nw / 32) * 32)
+        hp, wp = self.network_size(*(self.input_size or (h, w)))
         with torch.no_grad():
             inputs = _resize(images.to(self.device), (hp, wp))
             if self.flip_average:
-                both = self.model.depth(torch.cat([inputs, inputs.flip(-1)]))
+                both = self.network_depth(torch.cat([inputs, inputs.flip(-1)]))
                 plain, mirrored = both.split(inputs.shape[0])
                 depth = 1.0 / blend_flipped_inverse_depth(1.0 / plain, 1.0 / mirrored.flip(-1))
             else:
-                depth = self.model.depth(inputs)
+                depth = self.network_depth(inputs)
             if (hp, wp) != (h, w):
                 depth = F.interpolate(depth, size=(h, w), mode="bilinear", align_corners=False)
             return depth * self.depth_scale
