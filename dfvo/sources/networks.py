@@ -27,7 +27,8 @@ from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
 from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
 
-__all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
+__all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size", "resize_images",
+           "resize_flow"]
 
 VARIANTS = ("default", "small", "tiny")
 
@@ -48,13 +49,14 @@ def resolve_input_size(input_size: Any, meta: dict[str, str], what: str) -> tupl
     return h, w
 
 
-def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+def resize_images(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Images (B,C,H,W) -> ``size`` (h, w) as the networks see them: antialiased bilinear (unchanged at that size)."""
     if tuple(images.shape[-2:]) == size:
         return images
     return F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
 
 
-def _resize_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+def resize_flow(flow: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     """Flow (B,2,h,w) in pixels of its own size → (B,2,H,W) in pixels of ``size``."""
     h, w = flow.shape[-2:]
     if (h, w) == tuple(size):
@@ -104,7 +106,7 @@ class NetworkFlow:
 
     def network_inputs(self, *images: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The images (B,3,H,W) as the network sees them: on its device, resized to its input size."""
-        return tuple(_resize(im.to(self.device), self.input_size or tuple(im.shape[-2:])) for im in images)
+        return tuple(resize_images(im.to(self.device), self.input_size or tuple(im.shape[-2:])) for im in images)
 
     def __call__(self, images_prev: torch.Tensor, images_cur: torch.Tensor,
                  indices: list[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -113,7 +115,7 @@ class NetworkFlow:
         size = tuple(images_prev.shape[-2:])
         with torch.no_grad():
             fwd, bwd = self.model.forward_backward(*self.network_inputs(images_prev, images_cur))
-            return _resize_flow(fwd, size), _resize_flow(bwd, size)
+            return resize_flow(fwd, size), resize_flow(bwd, size)
 
 
 def blend_flipped_inverse_depth(inv_depth: torch.Tensor, inv_depth_of_mirror: torch.Tensor,
@@ -175,7 +177,7 @@ class NetworkDepth:
         nh, nw = self.input_size or (h, w)
         hp, wp = max(64, round(nh / 32) * 32), max(64, round(nw / 32) * 32)
         with torch.no_grad():
-            inputs = _resize(images.to(self.device), (hp, wp))
+            inputs = resize_images(images.to(self.device), (hp, wp))
             if self.flip_average:
                 both = self.model.depth(torch.cat([inputs, inputs.flip(-1)]))
                 plain, mirrored = both.split(inputs.shape[0])
