@@ -142,7 +142,7 @@ class Candidates:
         self.fns["onnxruntime"] = OnnxRuntimeEngine(onnx_fp32, threads)
         self.fns["openvino"] = OpenVinoEngine(onnx_fp32, threads)
         if flags["avx512_bf16"] or flags["amx_bf16"]:
-            self.fns["openvino_bf16"] = OpenVinoEngine(onnx_fp32, threads, precision="bf16")
+            self.fns["openvino_bf16"] = OpenVinoEngine(onnx_fp32, threads, inference_precision="bf16")
         if onnx_int8 is not None:
             self.fns["onnxruntime_int8"] = OnnxRuntimeEngine(onnx_int8, threads)
             self.fns["openvino_int8"] = OpenVinoEngine(onnx_int8, threads)

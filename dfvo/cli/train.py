@@ -7,7 +7,8 @@
 
 The settings and their defaults: :mod:`dfvo.training.config`. Expected failures (bad data, settings, checkpoints, a
 non-finite loss) end with one line on stderr and the traceback in the run's Hydra log (``verbose=true`` raises them
-with their traceback).
+with their traceback). SIGTERM / SIGINT stop after the step in progress with ``last.ckpt`` written, one line, and
+exit status 143 / 130 (:mod:`dfvo.training.stop_signals`).
 """
 
 from __future__ import annotations
@@ -24,17 +25,22 @@ register_configs()
 @hydra.main(config_path="pkg://dfvo.conf.train", config_name="train", version_base="1.3")
 def train_app(cfg: DictConfig) -> None:
     """The Hydra task: one training run (:func:`dfvo.training.runner.run_training`)."""
-    from dfvo.training.runner import run_training  # deferred: Lightning is slow to import; --help is not
+    from dfvo.training.runner import (  # deferred: Lightning is slow to import; --help is not
+        TrainingInterrupted,
+        run_training,
+    )
 
     try:
         result = run_training(cfg)
+    except TrainingInterrupted as err:  # SIGTERM / SIGINT: last.ckpt written, exit 128 + signal (143 / 130)
+        report_error("dfvo-train", str(err), exc=err, exit_code=err.exit_code)
     except (*EXPECTED_ERRORS, FloatingPointError) as err:
         if cfg.get("verbose", False):
             raise
         report_error("dfvo-train", str(err), exc=err)
     weights = f", weights {result['weights']}" if result["weights"] else ""
-    print(f"done: step {result['global_step']}, last checkpoint {result['last_ckpt']}, best {result['best_ckpt']}"
-          f"{weights}")
+    best = f", best {result['best_ckpt']}" if result["best_ckpt"] != result["last_ckpt"] else ""
+    print(f"done: step {result['global_step']}, last checkpoint {result['last_ckpt']}{best}{weights}")
 
 
 def main() -> None:

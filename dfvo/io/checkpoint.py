@@ -25,7 +25,7 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["CheckpointError", "MODEL_IDENTITY_KEY", "PACKAGE_DIR", "find_checkpoint", "read_state_dict",
+__all__ = ["CheckpointError", "MODEL_IDENTITY_KEY", "PACKAGE_DIR", "find_checkpoint", "read_state_dict", "file_task",
            "load_weights", "save_weights", "load_training_checkpoint"]
 
 MODEL_IDENTITY_KEY = "dfvo_model"
@@ -112,24 +112,41 @@ def read_state_dict(path: str | Path, expected: str, setting: str | None = None
     return obj, meta
 
 
-def load_weights(model: nn.Module, path: str | Path, expected: str, setting: str | None = None) -> dict[str, str]:
+def file_task(meta: dict[str, str]) -> str | None:
+    """The model kind (``flow``, ``depth``) a weights file says it holds: the ``task`` metadata of an export, or the
+    task of the model identity (``"depth:depth_stereo"``) of a training checkpoint; None when it says nothing."""
+    if meta.get("task"):
+        return str(meta["task"])
+    identity = meta.get(MODEL_IDENTITY_KEY)
+    return str(identity).split(":", 1)[0] if identity else None
+
+
+def load_weights(model: nn.Module, path: str | Path, expected: str, setting: str | None = None,
+                 task: str | None = None) -> dict[str, str]:
     """Fill ``model`` from the weights file ``path`` (tensors cast to the model's dtypes).
 
     Args:
         model: the network (its architecture must match the file).
         path: the weights file. expected: the network's name for messages (``"flow network FlowNet('small')"``).
         setting: the config key the path came from, for messages.
+        task: the model kind the file must hold (``flow``, ``depth``), checked against what the file says it holds
+            (:func:`file_task`) before the tensors; None: no check.
 
     Returns:
         The file's string metadata.
 
     Raises:
-        CheckpointError: missing or unreadable file, no prefix matching the model, missing/unexpected keys, shapes
-            that differ (another variant).
+        CheckpointError: missing or unreadable file, a file of another model kind, no prefix matching the model,
+            missing/unexpected keys, shapes that differ (another variant).
     """
     path = Path(path)
     where = _where(path, setting)
     state, meta = read_state_dict(path, expected, setting)
+    found = file_task(meta)
+    if task is not None and found is not None and found != task:
+        what = f"model identity {meta[MODEL_IDENTITY_KEY]!r}" if meta.get(MODEL_IDENTITY_KEY) else f"task={found!r}"
+        raise CheckpointError(f"{where}: holds a {found} model ({what}), expected a {expected} (a {task} "
+                              "checkpoint or weights file)")
     wanted = model.state_dict()
     best, best_hits = "", -1
     for prefix in PREFIXES:

@@ -29,7 +29,8 @@ from dfvo.models.depth_net import DepthNet
 from dfvo.models.flow_net import FlowNet
 from dfvo.sources.config import DepthSourceConfig, RuntimeConfig, RuntimeKind
 
-__all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size"]
+__all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size", "resize_images",
+           "resize_flow"]
 
 VARIANTS = ("default", "small", "tiny")
 
@@ -50,7 +51,8 @@ def resolve_input_size(input_size: Any, meta: dict[str, str], what: str) -> tupl
     return h, w
 
 
-def _resize(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+def resize_images(images: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Images (B,C,H,W) -> ``size`` (h, w) as the networks see them: antialiased bilinear (unchanged at that size)."""
     if tuple(images.shape[-2:]) == size:
         return images
     return F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
@@ -153,7 +155,7 @@ class NetworkFlow:
 
     def network_inputs(self, *images: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The images (B,3,H,W) as the network sees them: on its device, resized to its input size."""
-        return tuple(_resize(im.to(self.device), self.input_size or tuple(im.shape[-2:])) for im in images)
+        return tuple(resize_images(im.to(self.device), self.input_size or tuple(im.shape[-2:])) for im in images)
 
     def __call__(self, images_prev: torch.Tensor, images_cur: torch.Tensor,
                  indices: list[int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -259,7 +261,7 @@ class NetworkDepth:
         h, w = images.shape[-2:]
         hp, wp = self.network_size(*(self.input_size or (h, w)))
         with torch.no_grad():
-            inputs = _resize(images.to(self.device), (hp, wp))
+            inputs = resize_images(images.to(self.device), (hp, wp))
             if self.flip_average:
                 both = self.network_depth(torch.cat([inputs, inputs.flip(-1)]))
                 plain, mirrored = both.split(inputs.shape[0])

@@ -1,8 +1,11 @@
 """Callbacks of a training run: NaN stop, model identity in checkpoints, logging step after a resume, validation at
-a ``max_steps`` stop, and the channels-last memory layout."""
+a ``max_steps`` stop, the channels-last memory layout, and console lines of the metrics."""
 
 from __future__ import annotations
 
+import logging
+import math
+import time
 from typing import Any
 
 import lightning as L
@@ -11,7 +14,9 @@ from lightning.pytorch.callbacks import Callback
 
 from dfvo.io.checkpoint import MODEL_IDENTITY_KEY
 
-__all__ = ["NaNGuard", "ModelIdentity", "LoggedStepAfterResume", "ValidateAtStop", "ChannelsLast"]
+__all__ = ["NaNGuard", "ModelIdentity", "LoggedStepAfterResume", "ValidateAtStop", "ChannelsLast", "ConsoleMetrics"]
+
+log = logging.getLogger("dfvo.training")
 
 
 class NaNGuard(Callback):
@@ -63,6 +68,7 @@ class LoggedStepAfterResume(Callback):
                 and getattr(epoch_loop, "_batches_that_stepped", None) not in (None, trainer.global_step)):
             epoch_loop._batches_that_stepped = trainer.global_step
 
+
 class ValidateAtStop(Callback):
     """Validate the last step of a run that ``trainer.max_steps`` stops, also mid-epoch.
 
@@ -100,3 +106,42 @@ class ChannelsLast(Callback):
     def on_validation_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
                                   batch_idx: int, dataloader_idx: int = 0) -> None:
         to_channels_last(batch)
+
+
+def _scalars(metrics: dict[str, Any], prefix: str) -> str:
+    items = []
+    for key in sorted(metrics):
+        if key.startswith(prefix):
+            value = torch.as_tensor(metrics[key])
+            if value.numel() == 1 and math.isfinite(float(value)):
+                items.append(f"{key}={float(value):.4g}")
+    return " ".join(items)
+
+
+class ConsoleMetrics(Callback):
+    """One log line every ``every`` training steps (step, learning rate, steps per minute since the start or resume,
+    the logged ``train/`` scalars) and one after each validation (the ``val/`` scalars): a readable record of a run
+    without a progress bar (``trainer.print_every_n_steps``), e.g. one in the background writing to a log file."""
+
+    def __init__(self, every: int) -> None:
+        self.every = int(every)
+        self._start: tuple[float, int] | None = None
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._start = (time.monotonic(), int(trainer.global_step))
+        log.info("training from step %d of %s", trainer.global_step,
+                 trainer.max_steps if trainer.max_steps > 0 else trainer.num_training_batches)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        step = int(trainer.global_step)
+        if self.every <= 0 or step % self.every or self._start is None:
+            return
+        t0, step0 = self._start
+        rate = (step - step0) / max(time.monotonic() - t0, 1e-9) * 60.0
+        lr = trainer.optimizers[0].param_groups[0]["lr"] if trainer.optimizers else float("nan")
+        log.info("step %d lr %.3g %.1f steps/min %s", step, lr, rate, _scalars(trainer.callback_metrics, "train/"))
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.every > 0 and not trainer.sanity_checking:
+            log.info("validation at step %d: %s", trainer.global_step, _scalars(trainer.callback_metrics, "val/"))

@@ -28,6 +28,7 @@ from dfvo.training.augment import DepthAugmentConfig
 from dfvo.training.data_config import (
     TRAIN_DATA_SCHEMAS,
     CropMode,
+    FlowMixTrainDataConfig,
     FlowPairTrainDataConfig,
     FlyingChairsTrainDataConfig,
     FlyingThingsTrainDataConfig,
@@ -41,14 +42,16 @@ from dfvo.training.data_config import (
     WorldsTrainDataConfig,
     data_root,
 )
+from dfvo.training.flow_augment import FlowAugmentConfig
 from dfvo.validation import choice, choices, positive, typed
 
 __all__ = ["MonitorMode", "FlowMode", "CropMode", "Precision", "MatmulPrecision", "DepthModelConfig", "FlowLossConfig",
-           "FlowModelConfig", "MODEL_SCHEMAS", "TrainDataConfig", "WorldsTrainDataConfig", "SyntheticTrainDataConfig",
-           "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig", "KittiRawSyntheticTrainDataConfig",
-           "FlowPairTrainDataConfig", "FlyingChairsTrainDataConfig", "FlyingThingsTrainDataConfig",
-           "SintelTrainDataConfig", "KittiFlowTrainDataConfig", "TRAIN_DATA_SCHEMAS", "PRECISIONS", "TrainerConfig",
-           "TrainConfig", "register_configs", "typed", "model_config", "data_config", "data_root"]
+           "FlowPhase", "FlowModelConfig", "MODEL_SCHEMAS", "TrainDataConfig", "WorldsTrainDataConfig",
+           "SyntheticTrainDataConfig", "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig",
+           "KittiRawSyntheticTrainDataConfig", "FlowMixTrainDataConfig", "FlowPairTrainDataConfig",
+           "FlyingChairsTrainDataConfig", "FlyingThingsTrainDataConfig", "SintelTrainDataConfig",
+           "KittiFlowTrainDataConfig", "TRAIN_DATA_SCHEMAS", "PRECISIONS", "TrainerConfig", "TrainConfig",
+           "register_configs", "typed", "model_config", "data_config", "data_root"]
 
 
 class MonitorMode(StrEnum):
@@ -59,10 +62,13 @@ class MonitorMode(StrEnum):
 
 
 class FlowMode(StrEnum):
-    """``supervised``: multi-scale EPE on true flow; ``self``: photometric + smoothness + fb consistency."""
+    """``supervised``: multi-scale EPE on true flow; ``self``: photometric + smoothness + fb consistency; ``mixed``:
+    step-scheduled phases of supervised synthetic pairs and/or self-supervised KITTI raw pairs (``data=flow_mix``,
+    :attr:`FlowModelConfig.phases`)."""
 
     supervised = "supervised"
     self = "self"
+    mixed = "mixed"
 
 
 # ----------------------------------------------------------------------------------------------------- models
@@ -144,6 +150,32 @@ class FlowLossConfig:
 
 
 @dataclass
+class FlowPhase:
+    """One phase of a step-scheduled flow run (``model=flow_mix``, :attr:`FlowModelConfig.phases`).
+
+    Attributes:
+        name: the phase's name (logged). steps: optimiser steps of the phase.
+        lr: Adam's rate in the phase (x ``model.lr_gamma`` for its last ``1 - model.lr_drop_fraction``).
+        synthetic: each step holds ``data.batch_size`` supervised synthetic pairs (multi-scale EPE, both directions).
+        kitti: each step holds ``data.kitti_batch_size`` self-supervised KITTI raw pairs (photometric + smoothness +
+            forward-backward consistency, weight ``model.self_weight``).
+    """
+
+    name: str = "phase"
+    steps: int = MISSING
+    lr: float = 1e-4
+    synthetic: bool = True
+    kitti: bool = False
+
+    def __post_init__(self) -> None:
+        if self.steps < 1:
+            raise ValueError(f"model.phases: phase {self.name!r} has steps={self.steps}; expected >= 1")
+        positive(f"model.phases[{self.name}]", lr=self.lr)
+        if not (self.synthetic or self.kitti):
+            raise ValueError(f"model.phases: phase {self.name!r} trains on nothing; set synthetic and/or kitti true")
+
+
+@dataclass
 class FlowModelConfig:
     """Optical flow training (:class:`dfvo.training.flow_module.FlowModule`).
 
@@ -155,8 +187,17 @@ class FlowModelConfig:
             milestone epoch.
         init_from: start from these weights (a FlowModule ``.ckpt`` or a FlowNet ``.safetensors``/``.pt``).
         log_images_every: steps between TensorBoard images (flow colours, fb inconsistency, visibility).
-        monitor, monitor_mode: metric of the ``best`` checkpoint (``val/epe``: validation data with true flow).
-        loss: the self-supervised loss (mode ``self``).
+        monitor, monitor_mode: metric of the ``best`` checkpoint (``val/epe``: validation data with true flow; mode
+            ``mixed``: the mean over the held-out scenarios of the AEPE over visible pixels at the working size).
+        loss: the self-supervised loss (modes ``self`` and ``mixed``).
+        phases: mode ``mixed``: the run as a list of :class:`FlowPhase` (steps, rate, what a step's batch holds);
+            the run is their steps, one epoch. lr_drop_fraction: mode ``mixed``: each phase's rate is multiplied by
+            ``lr_gamma`` from this fraction of its steps on (1: never).
+        self_weight: mode ``mixed``: weight of the self-supervised loss added to the supervised one.
+        grad_clip_norm: clip the gradient's global 2-norm to this before each step (null: no clipping; a
+            ``trainer.gradient_clip_val`` applies when this is null).
+        augment: mode ``mixed``: flips, greyscale and jitter (:class:`dfvo.training.flow_augment.FlowAugmentConfig`;
+            null: none).
     """
 
     _target_: str = "dfvo.training.flow_module.FlowModule"
@@ -173,6 +214,11 @@ class FlowModelConfig:
     monitor: str | None = "val/epe"
     monitor_mode: MonitorMode = MonitorMode.min
     loss: FlowLossConfig = field(default_factory=FlowLossConfig)
+    phases: list[FlowPhase] = field(default_factory=list)
+    lr_drop_fraction: float = 0.75
+    self_weight: float = 1.0
+    grad_clip_norm: float | None = None
+    augment: FlowAugmentConfig | None = None
 
     def __post_init__(self) -> None:
         from dfvo.models.flow_net import FlowNetConfig  # deferred: torch; composing a config needs none
@@ -183,7 +229,15 @@ class FlowModelConfig:
             FlowNetConfig.variant(self.variant)
         except ValueError as err:
             raise ValueError(f"model.variant={self.variant!r}: {err}") from None
-        positive("model", lr=self.lr, lr_gamma=self.lr_gamma)
+        positive("model", lr=self.lr, lr_gamma=self.lr_gamma, lr_drop_fraction=self.lr_drop_fraction,
+                  grad_clip_norm=self.grad_clip_norm)
+        if self.lr_drop_fraction > 1:
+            raise ValueError(f"model.lr_drop_fraction={self.lr_drop_fraction}; expected a fraction in (0, 1]")
+        if self.self_weight < 0:
+            raise ValueError(f"model.self_weight={self.self_weight}; expected >= 0")
+        if (self.mode == FlowMode.mixed) != bool(self.phases):
+            raise ValueError("model.phases: mode 'mixed' (model=flow_mix) trains by phases and needs at least one; "
+                             f"mode {self.mode.value!r} has none (got {len(self.phases)})")
 
 
 MODEL_SCHEMAS: dict[str, type] = {"depth": DepthModelConfig, "flow": FlowModelConfig}
@@ -231,10 +285,19 @@ class TrainerConfig:
         benchmark: cuDNN autotuning for fixed input sizes (null: Lightning's default).
         float32_matmul_precision: ``torch.set_float32_matmul_precision`` (``high``: TF32 on Ampere and newer GPUs;
             null: leave torch's default).
+        val_check_interval: validate every this many training steps (an int) or fraction of an epoch (a float;
+            null: once per epoch), as Lightning's Trainer.
         validate_at_stop: a run stopped by ``max_steps`` validates its last step (so the monitored metric exists
             for the ``best`` checkpoint and the final metrics), also when the stop falls mid-epoch.
+        checkpoint_every_n_steps: rewrite ``checkpoints/last.ckpt`` every this many steps (and at the end of the run;
+            null: at every epoch end and validation).
+        keep_best: also keep ``best-*.ckpt``, the checkpoint of the best ``model.monitor`` value (a full copy;
+            ``trainer=smoke`` keeps only ``last.ckpt``, what resuming needs).
         export_weights: write ``RUN/weights.safetensors`` (fp16, the network inference loads, with its metadata)
             whenever ``checkpoints/last.ckpt`` is written.
+        print_every_n_steps: one console (log) line with the step, rate, speed and logged training metrics every
+            this many steps, and one per validation (0: none; for runs without a progress bar, e.g. in the
+            background).
         enable_progress_bar, progress_refresh: the progress bar. logger: TensorBoard under ``RUN/tb``.
     """
 
@@ -246,6 +309,7 @@ class TrainerConfig:
     max_steps: int = -1
     log_every_n_steps: int = 10
     check_val_every_n_epoch: int = 1
+    val_check_interval: int | float | None = None
     limit_train_batches: int | float | None = None
     limit_val_batches: int | float | None = None
     num_sanity_val_steps: int = 0
@@ -256,7 +320,10 @@ class TrainerConfig:
     benchmark: bool | None = None
     float32_matmul_precision: str | None = None
     validate_at_stop: bool = True
+    checkpoint_every_n_steps: int | None = None
+    keep_best: bool = True
     export_weights: bool = True
+    print_every_n_steps: int = 0
     enable_progress_bar: bool = True
     progress_refresh: int = 10
     logger: bool = True
@@ -267,6 +334,10 @@ class TrainerConfig:
             choice(MatmulPrecision, self.float32_matmul_precision, "trainer.float32_matmul_precision (or null)")
         if self.max_steps < -1 or self.max_steps == 0:
             raise ValueError(f"trainer.max_steps={self.max_steps}; expected -1 (no limit) or a positive count")
+        positive("trainer", checkpoint_every_n_steps=self.checkpoint_every_n_steps,
+                  val_check_interval=self.val_check_interval)
+        if self.print_every_n_steps < 0:
+            raise ValueError(f"trainer.print_every_n_steps={self.print_every_n_steps}; expected >= 0 (0: none)")
 
 
 # ------------------------------------------------------------------------------------------------------- root

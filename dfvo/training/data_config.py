@@ -23,6 +23,7 @@ from dfvo.validation import positive
 
 __all__ = ["CropMode", "TrainDataConfig", "WorldsTrainDataConfig", "SyntheticTrainDataConfig",
            "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig", "KittiRawSyntheticTrainDataConfig",
+           "FlowMixTrainDataConfig",
            "FlowPairTrainDataConfig", "FlyingChairsTrainDataConfig", "FlyingThingsTrainDataConfig",
            "SintelTrainDataConfig", "KittiFlowTrainDataConfig", "TRAIN_DATA_SCHEMAS", "data_root"]
 
@@ -137,6 +138,78 @@ class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     drives: list[str] | None = None
 
 
+def _training_seeds() -> list[int]:
+    return list(range(24))
+
+
+def _all_scenarios() -> list[str]:
+    return ["drive", "city", "straight", "highway"]
+
+
+@dataclass
+class FlowMixTrainDataConfig(TrainDataConfig):
+    """``data=flow_mix``: the step batches of step-scheduled flow training (``model=flow_mix``; the data module
+    :class:`dfvo.training.flow_data.FlowMixDataModule`, the render cache :mod:`dfvo.training.flow_renders`).
+
+    Each training step is one batch drawn at random (with replacement, from a generator seeded by ``seed``, the step
+    and the DDP rank, so a resumed run draws the same): ``batch_size`` supervised pairs of the synthetic training
+    worlds when the step's phase has ``synthetic``, and ``kitti_batch_size`` KITTI raw pairs when it has ``kitti``.
+
+    Attributes:
+        height, width: the network's input size (96x320 for the shipped networks); frames are rendered and decoded at
+            the working size ``render_scale`` times larger (640x192) and resized the way inference resizes.
+        seeds, num_frames, scenario, speed, frame_skips: the synthetic training worlds (one per seed, below 1000;
+            seed s gets ``scenario[s % len]``; ``speed`` m/frame, ``[v]`` or a range ``[lo, hi]`` drawn per world,
+            null: the scenario's), pairs (k, k+s) for every s of ``frame_skips`` (also the KITTI pairs' gaps).
+        max_flow: drop synthetic pairs whose largest true flow exceeds this many working-size pixels (null: keep all).
+        render_scale: working size / network size. sensor_variation: exposure changes and sensor noise per world.
+        device: where the worlds render (``cuda``: on the GPU). cache_dir: the render cache folder (null: render at
+            every start, keep nothing).
+        root, drives: KITTI raw (``ROOT/DATE/DATE_drive_XXXX_sync``, or one DATE folder; ``drives`` null: all),
+            needed when a phase has ``kitti``; ``root`` null: the environment variable ``DFVO_KITTI_RAW_ROOT``.
+        kitti_batch_size: KITTI pairs per step in phases with ``kitti``.
+        max_train_samples: use only the first N synthetic pairs (rendering stops at the world that completes them).
+        val_seeds, val_scenarios, val_num_frames, val_every: the held-out evaluation: per scenario, the pairs (k, k+1),
+            k = 0, val_every, ... of the worlds ``val_seeds`` at the working size, through the inference resizing.
+    """
+
+    ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
+
+    kind: str = "flow_mix"
+    height: int | None = 96
+    width: int | None = 320
+    seeds: list[int] = field(default_factory=_training_seeds)
+    num_frames: int = 40
+    scenario: list[str] = field(default_factory=_all_scenarios)
+    speed: list[float] | None = field(default_factory=lambda: [0.3, 3.0])
+    frame_skips: list[int] = field(default_factory=lambda: [1, 2, 3])
+    max_flow: float | None = 160.0
+    render_scale: int = 2
+    sensor_variation: bool = True
+    device: str = "cpu"
+    cache_dir: str | None = None
+    root: str | None = None
+    drives: list[str] | None = None
+    kitti_batch_size: int = 2
+    val_seeds: list[int] = field(default_factory=lambda: [1002, 1003])
+    val_scenarios: list[str] = field(default_factory=_all_scenarios)
+    val_every: int = 2
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.height is None or self.width is None:
+            raise ValueError("data=flow_mix needs data.height and data.width (the network's input size)")
+        positive("data", render_scale=self.render_scale, kitti_batch_size=self.kitti_batch_size,
+                  max_flow=self.max_flow)
+        if self.num_frames < 2 or max(self.frame_skips) >= self.num_frames:
+            raise ValueError(f"data.num_frames={self.num_frames} with data.frame_skips={list(self.frame_skips)}; "
+                             "expected more frames than the largest gap")
+        if not self.scenario:
+            raise ValueError("data.scenario=[]; expected at least one scenario")
+        if self.speed is not None and len(self.speed) not in (1, 2):
+            raise ValueError(f"data.speed={list(self.speed)}; expected null, [v] or [lo, hi] (m/frame)")
+
+
 @dataclass
 class FlowPairTrainDataConfig(TrainDataConfig):
     """Frame pairs with true flow (:mod:`dfvo.data.flow_datasets`): ``height``/``width`` the crop (both null: no
@@ -216,6 +289,7 @@ TRAIN_DATA_SCHEMAS: dict[str, type[TrainDataConfig]] = {
     "kitti_raw": KittiRawTrainDataConfig,
     "kitti_odom": KittiOdomTrainDataConfig,
     "kitti_raw_synthetic": KittiRawSyntheticTrainDataConfig,
+    "flow_mix": FlowMixTrainDataConfig,
     "flyingchairs": FlyingChairsTrainDataConfig,
     "flyingthings": FlyingThingsTrainDataConfig,
     "sintel": SintelTrainDataConfig,

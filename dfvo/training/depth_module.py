@@ -83,7 +83,7 @@ class DepthPoseModule(L.LightningModule):
 
     def _init_weights_from(self, path: str) -> None:
         """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path``."""
-        load_weights(self.depth_net, path, "depth network DepthNet", "model.init_from")
+        load_weights(self.depth_net, path, "depth network DepthNet", "model.init_from", task="depth")
         if self.pose_net is None:
             return
         state, _ = read_state_dict(path, "depth network DepthNet", "model.init_from")
@@ -91,7 +91,7 @@ class DepthPoseModule(L.LightningModule):
             logging.getLogger("dfvo.training").info("model.init_from=%s holds no PoseNet: the pose network starts "
                                                     "from random weights", path)
             return
-        load_weights(self.pose_net, path, "pose network PoseNet", "model.init_from")
+        load_weights(self.pose_net, path, "pose network PoseNet", "model.init_from", task="depth")
 
     # ---------------------------------------------------------------- forward
     def forward(self, image: torch.Tensor) -> torch.Tensor:

@@ -65,14 +65,48 @@ class LastCheckpoint(ModelCheckpoint):
         dirpath: the checkpoint folder.
         weights_path: where the export goes (None: no export).
         size: (height, width) the network is trained at (metadata). identity: the model identity (metadata).
+        every_n_steps: rewrite it every this many training steps, and at the end of the run (None: at every epoch end
+            and validation, Lightning's default points).
     """
 
     def __init__(self, dirpath: str | Path, weights_path: str | Path | None = None,
-                 size: tuple[int | None, int | None] = (None, None), identity: str | None = None) -> None:
+                 size: tuple[int | None, int | None] = (None, None), identity: str | None = None,
+                 every_n_steps: int | None = None) -> None:
         # Lightning 2.6's save_last only rewrites last.ckpt when a top-k file was saved: "last" is its own top-1
-        super().__init__(dirpath=dirpath, filename="last", monitor=None, save_top_k=1, enable_version_counter=False)
+        super().__init__(dirpath=dirpath, filename="last", monitor=None, save_top_k=1, enable_version_counter=False,
+                         every_n_train_steps=every_n_steps)
         self.weights_path = Path(weights_path) if weights_path is not None else None
         self.size, self.identity = size, identity
+
+    @property
+    def path(self) -> Path:
+        """``DIR/last.ckpt``."""
+        return Path(self.format_checkpoint_name({}))
+
+    def save_now(self, trainer: L.Trainer) -> Path:
+        """Write ``last.ckpt`` (and the export) for the trainer's current state, unless it was written at this step."""
+        if self._last_global_step_saved != trainer.global_step or not self.path.is_file():
+            self._save_checkpoint(trainer, str(self.path))
+            self.best_model_path = self.last_model_path = str(self.path)  # what run_training reports
+        return self.path
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        """Every ``every_n_steps`` steps (Lightning's own trigger), and with ``every_n_steps`` also at the step that
+        ends the run or an epoch (a ``max_steps`` stop, the last batch): saved here, at the end of the step, the
+        checkpoint resumes exactly like the periodic ones."""
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        if self._every_n_train_steps > 0 and not self._should_skip_saving_checkpoint(trainer):
+            ends = (trainer.should_stop or 0 < trainer.max_steps <= trainer.global_step
+                    or trainer.fit_loop.epoch_loop.batch_progress.is_last_batch)
+            if ends:
+                self.save_now(trainer)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """With ``every_n_steps``, a run whose last step was not saved yet (a stop requested after it) is saved."""
+        super().on_train_end(trainer, pl_module)
+        if self._every_n_train_steps > 0 and trainer.global_step > self._last_global_step_saved:
+            self.save_now(trainer)
 
     def _save_checkpoint(self, trainer: L.Trainer, filepath: str) -> None:
         super()._save_checkpoint(trainer, filepath)

@@ -14,9 +14,18 @@ from collections.abc import Callable, Iterator
 import torch
 from torch.utils.data import DataLoader, Sampler
 
-__all__ = ["ResumableSampler", "ResumableLoader"]
+__all__ = ["ResumableSampler", "ResumableLoader", "step_generator"]
 
 log = logging.getLogger("dfvo.training")
+
+
+def step_generator(seed: int, step: int, rank: int = 0, stream: int = 0) -> torch.Generator:
+    """A CPU generator for the random draws of one training step: seeded by (``seed``, ``step``, DDP ``rank``,
+    ``stream``) only, so a resumed run draws what an uninterrupted one drew, ranks draw differently, and separate
+    consumers of one step (``stream`` 0: the data's sampling, 1: the module's augmentation) draw independently."""
+    g = torch.Generator()
+    g.manual_seed(((int(seed) * 1_000_003 + int(step)) * 1009 + int(rank)) * 31 + int(stream))
+    return g
 
 
 class ResumableSampler(Sampler[int]):
@@ -40,11 +49,12 @@ class ResumableSampler(Sampler[int]):
         epoch_fn: callable returning the current epoch (None: use :meth:`set_epoch`).
         position_fn: callable returning ``(epoch, batches already trained in it)`` for :meth:`state_dict`
             (None: the start of the current epoch).
+        shuffle: False: every epoch is ``0, 1, ..., num_samples - 1`` (datasets whose item i is the batch of step i).
     """
 
     def __init__(self, num_samples: int, batch_size: int, seed: int = 0, num_replicas: int = 1, rank: int = 0,
                  drop_last: bool = False, epoch_fn: Callable[[], int] | None = None,
-                 position_fn: Callable[[], tuple[int, int]] | None = None) -> None:
+                 position_fn: Callable[[], tuple[int, int]] | None = None, shuffle: bool = True) -> None:
         if num_samples <= 0 or batch_size <= 0:
             raise ValueError(f"ResumableSampler: need num_samples > 0 and batch_size > 0, got {num_samples}, "
                              f"{batch_size}")
@@ -52,7 +62,7 @@ class ResumableSampler(Sampler[int]):
             raise ValueError(f"ResumableSampler: rank {rank} outside [0, {num_replicas})")
         self.num_samples, self.batch_size, self.seed = num_samples, batch_size, seed
         self.num_replicas, self.rank, self.drop_last = num_replicas, rank, drop_last
-        self.epoch_fn, self.position_fn = epoch_fn, position_fn
+        self.epoch_fn, self.position_fn, self.shuffle = epoch_fn, position_fn, shuffle
         self._epoch = 0
         self._resume: tuple[int, int] | None = None
         if drop_last and num_samples % num_replicas:
@@ -73,9 +83,12 @@ class ResumableSampler(Sampler[int]):
 
     def indices(self, epoch: int) -> list[int]:
         """This rank's sample order for ``epoch`` (the whole epoch)."""
-        g = torch.Generator()
-        g.manual_seed(self.seed + epoch)
-        order = torch.randperm(self.num_samples, generator=g).tolist()
+        if self.shuffle:
+            g = torch.Generator()
+            g.manual_seed(self.seed + epoch)
+            order = torch.randperm(self.num_samples, generator=g).tolist()
+        else:
+            order = list(range(self.num_samples))
         total = self.shard_size * self.num_replicas
         if total > len(order):  # pad by repeating, as DistributedSampler
             order += (order * math.ceil(total / len(order)))[:total - len(order)]

@@ -44,9 +44,10 @@ def _meta(path: str | Path) -> tuple[dict[str, str], set[torch.dtype]]:
 
 def test_smoke_run_validates_at_its_stop_and_exports_depth_weights(tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
-    """trainer=smoke stops at step 3, mid-epoch: its last step is validated, so the best checkpoint holds the
-    monitored metric (no "monitored key" warning); without validate_at_stop the metric is missing, as before."""
-    out, messages = _run(_cfg(tmp_path, "model=depth_mono", "trainer=smoke", "name=smoke"))
+    """trainer=smoke stops at step 3, mid-epoch: its last step is validated, so the best checkpoint (when kept:
+    trainer.keep_best=true) holds the monitored metric (no "monitored key" warning); without validate_at_stop the
+    metric is missing, as before."""
+    out, messages = _run(_cfg(tmp_path, "model=depth_mono", "trainer=smoke", "trainer.keep_best=true", "name=smoke"))
     assert out["global_step"] == 3
     assert "val/abs_rel_med" in out["metrics"] and 0 < out["metrics"]["val/abs_rel_med"] < 1
     assert Path(out["best_ckpt"]).name == "best-epoch=0-step=3.ckpt"
@@ -81,7 +82,7 @@ def test_smoke_run_validates_at_its_stop_and_exports_depth_weights(tmp_path: Pat
         assert set(a.keys()) == set(b.keys()) and all(torch.equal(a.get_tensor(k), b.get_tensor(k)) for k in a.keys())
 
     control, messages = _run(_cfg(tmp_path, "model=depth_mono", "trainer=smoke", "trainer.validate_at_stop=false",
-                                  "trainer.export_weights=false", "name=control"))
+                                  "trainer.keep_best=true", "trainer.export_weights=false", "name=control"))
     assert control["global_step"] == 3 and "val/abs_rel_med" not in control["metrics"]
     assert [m for m in messages if MISSING_METRIC in m] and control["weights"] is None
     assert not (tmp_path / "control" / "weights.safetensors").exists()
@@ -92,6 +93,8 @@ def test_flow_weights_export_runs_in_infer(tmp_path: Path) -> None:
     out, _ = _run(_cfg(tmp_path, "model=flow_supervised", "model.variant=tiny", "trainer=smoke", "data.width=96",
                        "data.num_frames=6", "name=flow"))
     assert out["global_step"] == 3 and "val/epe" in out["metrics"]
+    # trainer=smoke keeps only what resuming needs (issue 28): last.ckpt, no best-*.ckpt copy
+    assert [p.name for p in (tmp_path / "flow" / "checkpoints").iterdir()] == ["last.ckpt"]
     meta, dtypes = _meta(out["weights"])
     assert (meta["task"], meta["variant"], meta["height"], meta["width"], meta["global_step"]) == \
         ("flow", "tiny", "64", "96", "3")

@@ -101,7 +101,8 @@ class OnnxRuntimeEngine:
 
 
 class OpenVinoEngine:
-    """An ONNX model run by OpenVINO's CPU plugin (latency hint, ``threads`` threads, fp32 unless ``precision``).
+    """An ONNX model run by OpenVINO's CPU plugin (latency hint, ``threads`` threads; ``inference_precision`` in
+    OpenVINO's own words, ``f32`` or ``bf16``: :data:`PRECISIONS` maps ``runtime.precision`` to it).
 
     Each batch size compiles a static model (faster to run than one dynamic model); ``compiled_cache`` (a folder)
     keeps OpenVINO's compiled blobs there (its ``CACHE_DIR``), so later runs load them instead of compiling again
@@ -109,7 +110,7 @@ class OpenVinoEngine:
 
     name = "openvino"
 
-    def __init__(self, path: str | Path, threads: int, precision: str = "f32",
+    def __init__(self, path: str | Path, threads: int, inference_precision: str = "f32",
                  compiled_cache: str | Path | None = None) -> None:
         import openvino as ov
 
@@ -118,7 +119,7 @@ class OpenVinoEngine:
             self.core.set_property({"CACHE_DIR": str(compiled_cache)})
         self.model = self.core.read_model(str(path))
         self.config = {"INFERENCE_NUM_THREADS": max(1, int(threads)), "PERFORMANCE_HINT": "LATENCY",
-                       "NUM_STREAMS": 1, "INFERENCE_PRECISION_HINT": precision}
+                       "NUM_STREAMS": 1, "INFERENCE_PRECISION_HINT": inference_precision}
         self.compiled: dict[tuple, object] = {}
 
     def _request(self, shapes: tuple) -> object:

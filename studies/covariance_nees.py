@@ -1,6 +1,6 @@
 """NEES of the per-frame step covariance of an ``infer.py`` run against ground truth; prints JSON.
 
-    python benchmarks/covariance_nees.py OUT [OUT ...] [--gt GT.txt ...] [--inflation K]
+    python studies/covariance_nees.py OUT [OUT ...] [--gt GT.txt ...] [--inflation K]
 
 ``OUT`` is a run's folder (``frames.csv``, the trajectory ``SEQ.txt`` in KITTI format, ``summary.json``); the ground
 truth defaults to ``ROOT/poses/SEQ.txt`` of a KITTI odometry run (``--gt`` gives it per run otherwise). For every
