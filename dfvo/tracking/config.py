@@ -25,8 +25,8 @@ from dfvo.matching.selection import SelectionConfig, SelectionMethod
 from dfvo.validation import check, choice
 
 __all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "RoadPoints", "SelectionConfig",
-           "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "ScaleFilterConfig",
-           "GateConfig", "PnPConfig", "CovarianceConfig", "TrackerConfig"]
+           "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "CameraHeightConfig",
+           "RoadAlignmentConfig", "ScaleFilterConfig", "GateConfig", "PnPConfig", "CovarianceConfig", "TrackerConfig"]
 
 
 class TrackerMode(StrEnum):
@@ -46,10 +46,13 @@ class ModelSelectionMethod(StrEnum):
 
 
 class RoadPoints(StrEnum):
-    """The points the road plane is fitted to (``tracker.road_plane.points``; see :class:`RoadPlaneConfig`)."""
+    """The points the road plane is fitted to (``tracker.road_plane.points``; see :class:`RoadPlaneConfig`):
+    ``none`` fits none for a scale observation (the photometric road scale, ``tracker.road_alignment``, still uses
+    the network's plane to place its patch)."""
 
     triangulated = "triangulated"
     depth = "depth"
+    none = "none"
 
 
 class ScaleMethod(StrEnum):
@@ -68,6 +71,10 @@ class ModelSelectionConfig:
         h_threshold_px, h_iterations: homography RANSAC for GRIC.
         gric_sigma: fixed residual standard deviation of GRIC (pixels).
         flow_magnitude_threshold: ``flow``: PnP when the median flow is at most this many pixels.
+        min_parallax_px: E is kept, whatever ``method`` prefers, when its inliers' median image motion beyond the
+            camera's rotation is at least this many pixels (the translation is visible, so its direction is
+            measurable: a turning car at any speed). null: the paper (the method alone decides). Measured in
+            docs/scale.md (KITTI 07's turns).
     """
 
     method: ModelSelectionMethod = ModelSelectionMethod.gric
@@ -75,6 +82,7 @@ class ModelSelectionConfig:
     h_iterations: int = 50
     gric_sigma: float = 0.8
     flow_magnitude_threshold: float = 5.0
+    min_parallax_px: float | None = 1.0
 
     def __post_init__(self) -> None:
         self.method = choice(ModelSelectionMethod, self.method, "tracker.model_selection.method")
@@ -109,6 +117,9 @@ class ScaleConfig:
             the three-frame relative scale predicts each pair's length from the previous one, the absolute
             observations correct it; a frame whose scale observations fail keeps the prediction. false: per-frame
             scale (the paper). Default true; its effect is measured in docs/scale.md.
+        fuse_pnp: a PnP frame's length (the depth network's scale) is one more observation of the scale fusion
+            (its bias estimate, the three-frame relative scale, the road) instead of the frame's length as it is;
+            false: PnP's own length (the paper).
     """
 
     method: ScaleMethod = ScaleMethod.simple
@@ -126,6 +137,7 @@ class ScaleConfig:
     camera_height: float | None = None
     camera_height_from_data: bool = True
     temporal: bool = True
+    fuse_pnp: bool = True
 
     def __post_init__(self) -> None:
         self.method = choice(ScaleMethod, self.method, "tracker.scale.method")
@@ -196,6 +208,87 @@ class RoadPlaneConfig:
 
 
 @dataclass
+class CameraHeightConfig:
+    """The camera's height when no dataset or setting gives it (``tracker.camera_height``,
+    :mod:`dfvo.tracking.camera_height`).
+
+    Attributes:
+        estimate: estimate it from the depth network's road plane over the frames seen so far (false: without a
+            given height there are no road observations).
+        min_frames: frames with a road plane before the estimate is used.
+        max_spread: the per-frame heights' robust relative spread above which the estimate is unusable (no steady
+            road in view: indoors, hand-held).
+        height_range: a plausible camera height above a road (metres); an estimate outside is unusable.
+    """
+
+    estimate: bool = True
+    min_frames: int = 3
+    max_spread: float = 0.15
+    height_range: list[float] = field(default_factory=lambda: [0.3, 4.0])
+
+    def __post_init__(self) -> None:
+        self.height_range = [float(v) for v in self.height_range]
+        check(len(self.height_range) == 2 and 0 < self.height_range[0] < self.height_range[1],
+               f"tracker.camera_height.height_range={self.height_range}; expected [lo, hi] metres with 0 < lo < hi")
+        check(int(self.min_frames) >= 1 and self.max_spread > 0,
+               f"tracker.camera_height: min_frames={self.min_frames} (expected >= 1), max_spread={self.max_spread} "
+               "(expected > 0)")
+
+
+@dataclass
+class RoadAlignmentConfig:
+    """The photometric road scale (``tracker.road_alignment``, :mod:`dfvo.tracking.road_scale`): the road ahead aligned
+    between the two images by the homography of its plane gives the camera's height in the unit of the E-tracker's
+    translation, so the camera height in metres over it is the translation's length. Used when a camera height is
+    known or estimated (``tracker.scale.camera_height``, ``tracker.camera_height``).
+
+    Attributes:
+        enabled: false: not used (the paper has no road scale).
+        min_depth, max_depth: the patch covers the road this far ahead of the camera (metres, placed with the depth
+            network's road plane), moved further by ``motion_margin`` times the expected travel (fast motion: the
+            near road leaves the later image). half_width: ... and this far either side of the line of sight.
+        min_pixels: a smaller patch (a low-resolution image, or a camera that sees no road there) gives nothing.
+        span, steps: with a prediction the search covers the expected unit height times/divided by ``span`` in
+            ``2 steps - 1`` log-spaced samples; without one, or when nothing is found there, the whole
+            ``wide_range`` (camera height over translation length: 0.3..100 covers 1.65 m at 0.017-5.5 m a frame) in
+            steps of ``coarse_step`` in log height (on every 2nd pixel), then ``steps`` samples over +-2 coarse
+            steps around its best (every pixel). The best three samples are refined by a parabola.
+        block_max_cost: a block (near/far x left/centre/right) whose best 1 - ZNCC exceeds this is left out
+            (a car, a shadow edge); min_blocks: fewer blocks left: nothing. max_cost: the mean profile's best cost
+            must be at most this.
+        log_std: standard deviation of the observation's log (the filter's measurement noise).
+    """
+
+    enabled: bool = True
+    min_depth: float = 6.0
+    max_depth: float = 15.0
+    motion_margin: float = 1.0
+    half_width: float = 2.5
+    normal_from_motion: bool = False
+    min_pixels: int = 500
+    span: float = 2.0
+    steps: int = 21
+    coarse_step: float = 0.05
+    wide_range: list[float] = field(default_factory=lambda: [0.3, 100.0])
+    block_max_cost: float = 0.05
+    min_blocks: int = 2
+    max_cost: float = 0.05
+    log_std: float = 0.07
+
+    def __post_init__(self) -> None:
+        check(0 < self.min_depth < self.max_depth and self.half_width > 0,
+               f"tracker.road_alignment: min_depth={self.min_depth}, max_depth={self.max_depth}, half_width="
+               f"{self.half_width}; expected 0 < min_depth < max_depth and half_width > 0")
+        check(self.span > 1 and self.coarse_step > 0 and int(self.steps) >= 5 and self.log_std > 0,
+               f"tracker.road_alignment: span={self.span} (expected > 1), coarse_step={self.coarse_step} (expected > "
+               f"0), steps={self.steps} (expected >= 5), log_std={self.log_std} (expected > 0)")
+        self.wide_range = [float(v) for v in self.wide_range]
+        check(len(self.wide_range) == 2 and 0 < self.wide_range[0] < self.wide_range[1],
+               f"tracker.road_alignment.wide_range={list(self.wide_range)}; expected [lo, hi] with 0 < lo < hi")
+        check(1 <= int(self.min_blocks) <= 6, f"tracker.road_alignment.min_blocks={self.min_blocks}; expected 1..6")
+
+
+@dataclass
 class ScaleFilterConfig:
     """Scale fusion and the temporal filter over log scale (``tracker.scale_filter``).
 
@@ -216,6 +309,8 @@ class ScaleFilterConfig:
         min_length: a frame that moved less (m) makes the filter forget the scale and gives no relative scale to the
             next (a stop, or a rotation in place).
         max_rejections: frames in a row whose absolute observations were all gated out before the filter restarts.
+        warmup_frames: no observation is gated out before this many frames have been fused since the scale was
+            last unknown (the start of a sequence, after a stop): the first observation only starts the average.
     """
 
     cnn_log_std: float = 0.1
@@ -230,6 +325,8 @@ class ScaleFilterConfig:
     min_points: int = 20
     min_length: float = 0.1
     max_rejections: int = 3
+    warmup_frames: int = 5
+    temporal_rotation_log_std: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("cnn_log_std", "motion_log_std", "temporal_log_std", "gate_sigma", "max_inconsistency"):
@@ -316,8 +413,8 @@ class TrackerConfig:
     Attributes:
         mode: see :class:`TrackerMode`.
         seed: frame k of a sequence draws its random samples from ``torch.Generator().manual_seed(seed + k)``.
-        correspondence, essential, model_selection, scale, road_plane, scale_filter, gate, pnp: the stages'
-            sections. covariance: the per-frame covariance of the step.
+        correspondence, essential, model_selection, scale, road_plane, road_alignment, camera_height, scale_filter,
+            gate, pnp: the stages' sections. covariance: the per-frame covariance of the step.
     """
 
     mode: TrackerMode = TrackerMode.hybrid
@@ -327,6 +424,8 @@ class TrackerConfig:
     model_selection: ModelSelectionConfig = field(default_factory=ModelSelectionConfig)
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     road_plane: RoadPlaneConfig = field(default_factory=RoadPlaneConfig)
+    road_alignment: RoadAlignmentConfig = field(default_factory=RoadAlignmentConfig)
+    camera_height: CameraHeightConfig = field(default_factory=CameraHeightConfig)
     scale_filter: ScaleFilterConfig = field(default_factory=ScaleFilterConfig)
     gate: GateConfig = field(default_factory=GateConfig)
     pnp: PnPConfig = field(default_factory=PnPConfig)

@@ -29,6 +29,8 @@ class FrameDiagnostics:
         num_correspondences: selected correspondences; num_inliers: inliers of the model that was used.
         gric_e, gric_h: GRIC scores of E and H (None when model selection is not GRIC or E did not run).
         cheirality_fraction: fraction of the selected rows in front of both cameras under E's pose.
+        parallax_px: median image motion of E's inliers beyond the camera's rotation (pixels): what the translation
+            shows (model selection keeps E above ``tracker.model_selection.min_parallax_px``).
         scale: length of the translation used (metres for metric depth).
         scale_iterations: iterations of Algorithm 2 (iterative scale only).
         scale_cnn: the scale from CNN depth (None when it failed or E did not run).
@@ -37,6 +39,9 @@ class FrameDiagnostics:
             ``depth`` the CNN-depth scale divided by the network's estimated scale factor. plane_inliers: road-plane
             inliers. camera_height_fit: the fitted camera height in metres (triangulated: at the scale used; depth:
             the network's own road height).
+        camera_height: the camera height (metres) the road observations used (given or estimated; None: none).
+        scale_homography: the photometric road scale (``tracker.road_alignment``): the camera height over the
+            road's distance in the unit translation's unit. road_alignment_cost: its 1 - ZNCC at the optimum.
         scale_temporal: this pair's length from the three-frame relative scale (``tracker.scale.temporal``).
         scale_predicted: the temporal filter's prediction before this frame's observations. cnn_bias: the
             estimated scale factor of the depth network (with the camera height).
@@ -57,12 +62,16 @@ class FrameDiagnostics:
     gric_e: float | None = None
     gric_h: float | None = None
     cheirality_fraction: float | None = None
+    parallax_px: float | None = None
     scale: float | None = None
     scale_iterations: int | None = None
     scale_cnn: float | None = None
     scale_height: float | None = None
     plane_inliers: int | None = None
     camera_height_fit: float | None = None
+    camera_height: float | None = None
+    scale_homography: float | None = None
+    road_alignment_cost: float | None = None
     scale_temporal: float | None = None
     scale_predicted: float | None = None
     cnn_bias: float | None = None

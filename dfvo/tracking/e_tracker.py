@@ -17,7 +17,7 @@ import torch
 from dfvo.geometry.gric import gric_essential, gric_homography
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, find_homography_ransac
 from dfvo.tracking.config import ModelSelectionMethod, TrackerConfig
-from dfvo.tracking.model_selection import prefer_pnp_flow, prefer_pnp_gric
+from dfvo.tracking.model_selection import prefer_pnp_flow, prefer_pnp_gric, rotation_compensated_parallax
 from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depths
 
 __all__ = ["ETrackerResult", "track_essential", "essential_scale"]
@@ -31,6 +31,8 @@ class ETrackerResult:
         R: (B,3,3), t: (B,3) unit ``T_cur_prev``. E: (B,3,3). inliers: (B,N) RANSAC inliers.
         num_inliers: (B,) long. cheirality_fraction: (B,) of valid rows in front of both cameras.
         gric_e, gric_h: (B,) float64 (NaN when model_selection is not "gric").
+        parallax_px: (B,) float64 median image motion of E's inliers beyond the rotation (pixels; NaN without
+            inliers): what the translation shows in the image.
         valid: (B,) bool, E usable. reasons: why a frame's E is not usable (None when valid).
     """
 
@@ -42,6 +44,7 @@ class ETrackerResult:
     cheirality_fraction: torch.Tensor
     gric_e: torch.Tensor
     gric_h: torch.Tensor
+    parallax_px: torch.Tensor
     valid: torch.Tensor
     reasons: list[str | None]
 
@@ -49,15 +52,17 @@ class ETrackerResult:
         """Pair ``b`` of the batch as a result of batch size 1 (views of the tensors, no copy)."""
         sl = slice(b, b + 1)
         return ETrackerResult(self.R[sl], self.t[sl], self.E[sl], self.inliers[sl], self.num_inliers[sl],
-                              self.cheirality_fraction[sl], self.gric_e[sl], self.gric_h[sl], self.valid[sl],
-                              [self.reasons[b]])
+                              self.cheirality_fraction[sl], self.gric_e[sl], self.gric_h[sl], self.parallax_px[sl],
+                              self.valid[sl], [self.reasons[b]])
 
 
 def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
                     cfg: TrackerConfig, generators: list[torch.Generator] | None) -> ETrackerResult:
     """Essential-matrix tracking with validity rules: more than ``min_correspondences`` rows, a RANSAC model,
-    E preferred by model selection (GRIC_E <= GRIC_H, or enough flow), and at least
-    ``min_cheirality_fraction`` of the rows passing cheirality."""
+    E preferred by model selection (GRIC_E <= GRIC_H, or enough flow; with ``model_selection.min_parallax_px``
+    also any pair whose inliers move at least that far beyond the camera's rotation, see
+    :func:`dfvo.tracking.model_selection.rotation_compensated_parallax`), and at least ``min_cheirality_fraction``
+    of the rows passing cheirality."""
     B = pts_i.shape[0]
     ess, sel = cfg.essential, cfg.model_selection
     n = mask.sum(-1)
@@ -76,6 +81,9 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
     else:
         g_e, g_h = nan, nan.clone()
         pnp_wanted = prefer_pnp_flow(pts_i, pts_j, mask, sel.flow_magnitude_threshold)
+    parallax = rotation_compensated_parallax(pts_i, pts_j, mask & ransac.inliers, R, K)
+    if sel.min_parallax_px is not None:  # the translation is visible: E's direction is measurable (parallax rule)
+        pnp_wanted = pnp_wanted & ~(parallax >= sel.min_parallax_px)
     reasons: list[str | None] = []
     valid = torch.zeros(B, dtype=torch.bool, device=pts_i.device)
     for b in range(B):
@@ -91,7 +99,8 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
         else:
             reasons.append(None)
             valid[b] = True
-    return ETrackerResult(R, t, ransac.model, ransac.inliers, ransac.num_inliers, cheir, g_e, g_h, valid, reasons)
+    return ETrackerResult(R, t, ransac.model, ransac.inliers, ransac.num_inliers, cheir, g_e, g_h, parallax, valid,
+                         reasons)
 
 
 def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor,

@@ -33,6 +33,7 @@ import time
 from dataclasses import dataclass
 
 import torch
+from kornia.color import rgb_to_grayscale
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.se3 import pose_from_rt, se3_inverse
@@ -90,6 +91,7 @@ class FrameState:
         generator: this frame's seeded generator (``cfg.seed + frame index``).
         essential: the E-tracker's result for this pair (None with ``tracker=pnp``); scale, scale_ok: its simple
             scale from CNN depth and whether it succeeded (None with ``tracker=pnp``).
+        grey_pair: the pair's grey images (1,1,H,W) each, for the photometric road scale (None: not given).
         diagnostics: the frame's record, filled as it is decided.
         estimate: the fused scale the E pose used (None: no fusion, or not an E pose).
         gate_overruled: a gate's rejection was overruled (after ``gate.max_consecutive`` gated frames in a row).
@@ -109,6 +111,7 @@ class FrameState:
     essential: ETrackerResult | None
     scale: float | None
     scale_ok: bool | None
+    grey_pair: tuple[torch.Tensor, torch.Tensor] | None
     diagnostics: FrameDiagnostics
     estimate: ScaleEstimate | None = None
     gate_overruled: bool = False
@@ -142,18 +145,23 @@ class VisualOdometry:
 
     # ------------------------------------------------------------------------------------------ public
     def step(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth_prev: torch.Tensor,
-             K: torch.Tensor, depth_cur: torch.Tensor | None = None) -> FrameResult:
+             K: torch.Tensor, depth_cur: torch.Tensor | None = None, image_prev: torch.Tensor | None = None,
+             image_cur: torch.Tensor | None = None) -> FrameResult:
         """Track one new frame: flows (1,2,H,W) prev->cur and cur->prev, depth (1,1,H,W) of prev, K (1,3,3);
-        ``depth_cur`` (1,1,H,W) of cur when ``scale_depth_views=2``."""
+        ``depth_cur`` (1,1,H,W) of cur when ``scale_depth_views=2``; the two images (1,C,H,W) in [0,1] for the
+        photometric road scale (``tracker.road_alignment``; without them it is not used)."""
         KORNIA_CHECK(flow_fwd.shape[0] == 1, f"VisualOdometry.step takes one pair (B=1); got flow_fwd "
                                              f"{tuple(flow_fwd.shape)} (use run for batches)")
-        return self._batch(flow_fwd, flow_bwd, depth_prev, K.reshape(1, 3, 3), depth_cur)[0]
+        images = None if image_prev is None or image_cur is None else torch.cat([image_prev, image_cur])
+        return self._batch(flow_fwd, flow_bwd, depth_prev, K.reshape(1, 3, 3), depth_cur, images)[0]
 
     def run(self, flows_fwd: torch.Tensor, flows_bwd: torch.Tensor, depths: torch.Tensor, K: torch.Tensor,
-            batch_size: int = 8, depths_next: torch.Tensor | None = None) -> list[FrameResult]:
+            batch_size: int = 8, depths_next: torch.Tensor | None = None,
+            images: torch.Tensor | None = None) -> list[FrameResult]:
         """Track a whole sequence: (N-1,2,H,W) flows, (N-1,1,H,W) depths of the earlier frame of each pair,
         K (3,3) or (N-1,3,3); ``depths_next`` (N-1,1,H,W) of the later frame of each pair when
-        ``scale_depth_views=2``. Returns N-1 results (frame 0 is identity), identical to calling :meth:`step`."""
+        ``scale_depth_views=2``; ``images`` (N,C,H,W) in [0,1], the frames themselves (for the photometric road
+        scale). Returns N-1 results (frame 0 is identity), identical to calling :meth:`step`."""
         KORNIA_CHECK_SHAPE(flows_fwd, ["M", "2", "H", "W"])
         M = flows_fwd.shape[0]
         Ks = K.reshape(1, 3, 3).expand(M, 3, 3) if K.dim() == 2 else K
@@ -162,12 +170,14 @@ class VisualOdometry:
         for s in range(0, M, max(1, int(batch_size))):
             e = min(M, s + max(1, int(batch_size)))
             out.extend(self._batch(flows_fwd[s:e], flows_bwd[s:e], depths[s:e], Ks[s:e],
-                                   None if depths_next is None else depths_next[s:e]))
+                                   None if depths_next is None else depths_next[s:e],
+                                   None if images is None else images[s:e + 1]))
         return out
 
     # ------------------------------------------------------------------------------------------ internals
     def _batch(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth: torch.Tensor,
-               K: torch.Tensor, depth_next: torch.Tensor | None = None) -> list[FrameResult]:
+               K: torch.Tensor, depth_next: torch.Tensor | None = None,
+               images: torch.Tensor | None = None) -> list[FrameResult]:
         cfg = self.cfg
         KORNIA_CHECK_SHAPE(flow_fwd, ["B", "2", "H", "W"])
         KORNIA_CHECK_SHAPE(flow_bwd, ["B", "2", "H", "W"])
@@ -185,6 +195,13 @@ class VisualOdometry:
                                  f"{tuple(depth.shape)}; got {None if depth_next is None else tuple(depth_next.shape)}")
         else:
             depth_next = None  # the paper's one-view scale: a given next depth is not used
+        KORNIA_CHECK(images is None or (images.shape[0] == B + 1 and images.shape[-2:] == flow_fwd.shape[-2:]),
+                     f"VisualOdometry: images {None if images is None else tuple(images.shape)}; expected "
+                     f"({B + 1},C,{flow_fwd.shape[-2]},{flow_fwd.shape[-1]}): the frames of the {B} pairs")
+        grey = None
+        if images is not None and cfg.road_alignment.enabled:
+            grey = images.to(torch.float32)
+            grey = rgb_to_grayscale(grey) if grey.shape[1] == 3 else grey
         gens = [torch.Generator().manual_seed(cfg.seed + self.frame + b) for b in range(B)]
         t0 = time.perf_counter()
         sel = cfg.correspondence
@@ -212,6 +229,7 @@ class VisualOdometry:
                 inconsistency=incon[sl], generator=gens[b], essential=None if e_res is None else e_res.pair(b),
                 scale=None if scale is None else float(scale[b]),
                 scale_ok=None if scale_ok is None else bool(scale_ok[b]),
+                grey_pair=None if grey is None else (grey[b:b + 1], grey[b + 1:b + 2]),
                 diagnostics=FrameDiagnostics(frame=self.frame + 1, num_correspondences=int(mask[b].sum()),
                                              selection_failed=bool(corr.failed[b])))
             res = self._finish_frame(state)
@@ -230,6 +248,8 @@ class VisualOdometry:
             diag.gric_e = gric_e if gric_e == gric_e else None  # NaN: GRIC not computed
             diag.gric_h = gric_h if gric_h == gric_h else None
             diag.cheirality_fraction = float(e_res.cheirality_fraction[0])
+            parallax = float(e_res.parallax_px[0])
+            diag.parallax_px = parallax if parallax == parallax else None
         T_cur_prev: torch.Tensor | None = None
         if st.selection_failed:
             diag.fallback_reason = f"selection failed: {st.selection_reason}"
@@ -254,6 +274,8 @@ class VisualOdometry:
         self.frame += 1
         rows = st.rows
         used_e = e_res is not None and diag.tracker == TrackerUsed.essential
+        if diag.tracker != TrackerUsed.essential and diag.tracker != TrackerUsed.pnp:
+            st.estimate = None  # an estimate of a tracker result that was not used
         self.fusion.end_frame(T_cur_prev, T_prev_cur, diag.tracker, st.estimate, st.pts_prev[0], st.pts_cur[0],
                               rows & e_res.inliers[0] if used_e else rows, st.K[0])
         gated_out = diag.gate_rejected and diag.tracker == TrackerUsed.constant_motion
@@ -312,7 +334,7 @@ class VisualOdometry:
         diag.scale_cnn = s if ok else None
         if self.fusion.uses_fusion:
             est = self.fusion.estimate(R, t, s if ok else None, pi, pj, (rows & e_res.inliers[0])[None],
-                                       K, st.flow, st.inconsistency, depth, gen, diag)
+                                       K, st.flow, st.inconsistency, depth, gen, diag, st.grey_pair)
             if est.scale is None:
                 return None, failed
             if est.source == "prediction":
@@ -355,6 +377,16 @@ class VisualOdometry:
             diag.add_reason("PnP failed")
             return None
         length = float(T[0, :3, 3].norm())
+        if self.fusion.uses_fusion and cfg.scale.fuse_pnp and length >= cfg.scale_filter.min_length:
+            # PnP's length is the depth network's scale: one more observation of the filter (with its bias, the
+            # three-frame relative scale and the road), not the frame's length as it is
+            R_p, t_p = T[:, :3, :3], T[:, :3, 3] / length
+            est = self.fusion.estimate(R_p, t_p, length, pi, pj, mask, K, st.flow, st.inconsistency, depth,
+                                       st.generator, diag, st.grey_pair)
+            if est.scale is not None:
+                st.estimate = est
+                length = est.scale
+                T = pose_from_rt(R_p, length * t_p)
         if cfg.gate.enabled:
             _, usable = sample_depth(depth, pi, cfg.scale.max_depth, cfg.scale.depth_crop_top)
             direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])

@@ -8,6 +8,10 @@ bias (its scale observations are ``exp(x + b)``). Observations per frame:
       ``height_log_std``); it makes ``b`` observable;
     - ``road_bias``: the depth network's own road plane height over the true camera height (``log = b + noise``, std
       ``height_log_std``): a direct observation of the network's scale factor near the road;
+    - ``homography``: the photometric road scale, the camera height over the road's distance in the unit of the
+      E-tracker's translation found by aligning the road between the images (:mod:`dfvo.tracking.road_scale`;
+      ``log s = x + noise``, its own std): a length observation that uses neither the flow nor the network's metric
+      scale;
     - ``temporal``: the three-frame relative scale times the previous pair's length (a prediction of ``x`` with its
       own standard error); without it the prediction is the previous length (speed random walk ``motion_log_std``).
 
@@ -76,13 +80,16 @@ class ScaleFilter:
         min_length: a frame that moved less (m) makes the filter forget the scale (a stop: no relative scale).
         max_rejections: after this many frames in a row whose absolute observations were all gated out, the
             filter forgets the scale and restarts from the observations (a wrong prediction cannot lock it).
+        warmup_frames: no observation is gated out before this many frames have been fused since the scale was
+            last unknown (robust start: the first observation only starts the average).
     """
 
     def __init__(self, temporal: bool, estimate_bias: bool, cnn_log_std: float, height_log_std: float,
                  motion_log_std: float, temporal_log_std: float, relative_process_std: float,
                  bias_prior_log_std: float, bias_log_std: float, gate_sigma: float,
                  min_length: float = ScaleFilterConfig.min_length,
-                 max_rejections: int = ScaleFilterConfig.max_rejections) -> None:
+                 max_rejections: int = ScaleFilterConfig.max_rejections,
+                 warmup_frames: int = ScaleFilterConfig.warmup_frames) -> None:
         self.temporal, self.estimate_bias = bool(temporal), bool(estimate_bias)
         self.cnn_var, self.height_var = cnn_log_std ** 2, height_log_std ** 2
         self.motion_var, self.temporal_var = motion_log_std ** 2, temporal_log_std ** 2
@@ -90,7 +97,9 @@ class ScaleFilter:
         self.bias_prior_var, self.bias_var = bias_prior_log_std ** 2, bias_log_std ** 2
         self.gate_sigma = float(gate_sigma)
         self.min_length, self.max_rejections = float(min_length), int(max_rejections)
+        self.height_log_std, self.warmup_frames = float(height_log_std), int(warmup_frames)
         self.rejected_frames = 0
+        self.observed_frames = 0
         self.reset()
 
     def reset(self) -> None:
@@ -99,6 +108,7 @@ class ScaleFilter:
             (0.0, self.bias_prior_var if self.estimate_bias else 0.0)
         self.state = FilterState(b=b, pbb=pbb)
         self.rejected_frames = 0
+        self.observed_frames = 0
 
     # ------------------------------------------------------------------------------------------ one frame
     def prior(self, temporal_scale: float | None = None, temporal_log_std: float | None = None) -> FilterState:
@@ -114,38 +124,55 @@ class ScaleFilter:
             return replace(s, pbb=pbb)
         return replace(s, pxx=s.pxx + self.motion_var, pbb=pbb)
 
-    def _update(self, s: FilterState, z: float, hx: float, hb: float, r: float) -> tuple[FilterState, bool]:
-        """Kalman update with observation ``z = hx * x + hb * b + noise(r)``; False (unchanged) when gated out."""
+    def _update(self, s: FilterState, z: float, hx: float, hb: float, r: float,
+                gate: bool = True) -> tuple[FilterState, bool]:
+        """Kalman update with observation ``z = hx * x + hb * b + noise(r)``; False (unchanged) when gated out
+        (``gate``: the innovation test applies)."""
         y = z - hx * s.x - hb * s.b
         px, pb = hx * s.pxx + hb * s.pxb, hx * s.pxb + hb * s.pbb  # P H^T
         S = hx * px + hb * pb + r
-        if (s.known or hx == 0.0) and y * y > self.gate_sigma ** 2 * S:
+        if gate and (s.known or hx == 0.0) and y * y > self.gate_sigma ** 2 * S:
             return s, False
         kx, kb = px / S, pb / S
         return FilterState(x=s.x + kx * y, b=s.b + kb * y, pxx=s.pxx - kx * px, pxb=s.pxb - kx * pb,
                            pbb=s.pbb - kb * pb), True
 
     def estimate(self, prior: FilterState, cnn: float | None, height: float | None, road_bias: float | None = None,
-                 temporal_used: bool = False) -> ScaleEstimate:
-        """Fuse this frame's observations into ``prior``: ``cnn`` and ``height`` metric scales, ``road_bias`` the
-        network's road height over the true camera height (None or <= 0: absent)."""
+                 temporal_used: bool = False, homography: float | None = None,
+                 homography_log_std: float | None = None) -> ScaleEstimate:
+        """Fuse this frame's observations into ``prior``: ``cnn``, ``height`` and ``homography`` (the photometric
+        road scale, :mod:`dfvo.tracking.road_scale`; std of its log ``homography_log_std``) metric scales,
+        ``road_bias`` the network's road height over the camera height (None or <= 0: absent). Until
+        ``warmup_frames`` frames have been observed no observation is gated out (the first one is not trusted
+        blindly: it only starts the average)."""
         if self.rejected_frames >= self.max_rejections:  # restart from this frame's observations
             prior = replace(prior, x=0.0, pxx=UNKNOWN_VAR, pxb=0.0)
             temporal_used = False
+            self.observed_frames = 0
         s, used, rejected = prior, [], []
         if temporal_used:
             used.append("temporal")
         predicted = math.exp(prior.x) if prior.known else None
         hb = 1.0 if self.estimate_bias else 0.0
-        for name, z, hx, hbi, r in (("road", road_bias, 0.0, 1.0, self.height_var),
-                                    ("height", height, 1.0, 0.0, self.height_var),
-                                    ("cnn", cnn, 1.0, hb, self.cnn_var)):
-            if z is None or not z > 0 or not math.isfinite(z) or (hx == 0.0 and not self.estimate_bias):
-                continue
-            s, ok = self._update(s, math.log(z), hx, hbi, r)
+        gate = self.observed_frames >= self.warmup_frames
+        h_var = (homography_log_std if homography_log_std is not None else self.height_log_std) ** 2
+        observations = [(name, math.log(z), hx, hbi, r) for name, z, hx, hbi, r in (
+            ("road", road_bias, 0.0, 1.0, self.height_var), ("height", height, 1.0, 0.0, self.height_var),
+            ("homography", homography, 1.0, 0.0, h_var), ("cnn", cnn, 1.0, hb, self.cnn_var))
+            if z is not None and z > 0 and math.isfinite(z) and (hx != 0.0 or self.estimate_bias)]
+        # the absolute observations on their own (the prior's scale forgotten): when they disagree with the
+        # prediction beyond the gate, the frame counts like one whose observations were all gated out, so a
+        # prediction that ran away (the relative scale wrong over several frames) cannot outvote them for long
+        alone = replace(prior, x=0.0, pxx=UNKNOWN_VAR, pxb=0.0)
+        for _, z, hx, hbi, r in observations:
+            alone, _ = self._update(alone, z, hx, hbi, r, False)
+        disagree = (gate and prior.known and alone.known
+                    and (alone.x - prior.x) ** 2 > self.gate_sigma ** 2 * (prior.pxx + alone.pxx))
+        for name, z, hx, hbi, r in observations:
+            s, ok = self._update(s, z, hx, hbi, r, gate)
             (used if ok else rejected).append(name)
         absolute = [u for u in used if u not in ("temporal", "road")]
-        all_rejected = bool(rejected) and not absolute
+        all_rejected = (bool(rejected) and not absolute) or disagree
         if not s.known:
             return ScaleEstimate(None, "none", predicted, math.exp(s.b), s, rejected)
         source = "+".join(used) if absolute else ("temporal" if temporal_used else "prediction")
@@ -157,6 +184,7 @@ class ScaleFilter:
         if self.temporal:
             self.state = state
             self.rejected_frames = self.rejected_frames + 1 if all_rejected else 0
+            self.observed_frames += 1
 
     def commit_length(self, length: float, log_std: float, prior: FilterState) -> None:
         """The frame used a translation of ``length`` metres not from the fused scale (PnP, constant motion): keep
@@ -168,3 +196,4 @@ class ScaleFilter:
             self.state = replace(prior, x=math.log(length), pxx=max(log_std ** 2, 1e-12), pxb=0.0)
         else:
             self.state = replace(prior, x=0.0, pxx=UNKNOWN_VAR, pxb=0.0)
+            self.observed_frames = 0

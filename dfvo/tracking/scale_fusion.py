@@ -22,9 +22,11 @@ from dataclasses import dataclass, replace
 import torch
 
 from dfvo.geometry.two_view import normalise_points
+from dfvo.tracking.camera_height import CameraHeight
 from dfvo.tracking.config import RoadPoints, TrackerConfig
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.ground_plane import fit_road_plane, parallax_deg, road_candidates, road_grid
+from dfvo.tracking.road_scale import align_road
 from dfvo.tracking.scale import triangulated_depths
 from dfvo.tracking.scale_filter import FilterState, ScaleEstimate, ScaleFilter
 from dfvo.tracking.temporal_scale import MiddleDepths, middle_depths, relative_scale
@@ -35,18 +37,20 @@ __all__ = ["HeightObservation", "camera_height_scale", "depth_road_height", "Sca
 @dataclass
 class HeightObservation:
     """The camera-height scale of one frame: ``scale`` (None when the plane fit failed), ``height_unit`` (the
-    fitted height in the unit translation's unit), ``inliers`` (plane inliers)."""
+    fitted height in the points' unit), ``inliers`` (plane inliers), ``normal`` (3,) the plane's unit normal (down)
+    in the camera frame (None when the fit failed)."""
 
     scale: float | None
     height_unit: float | None
     inliers: int
+    normal: torch.Tensor | None = None
 
 
 def camera_height_scale(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_prev: torch.Tensor,
                         pts_cur: torch.Tensor, rows: torch.Tensor, image_hw: tuple[int, int], cfg: TrackerConfig,
-                        generator: torch.Generator | None) -> HeightObservation:
+                        generator: torch.Generator | None, camera_height: float) -> HeightObservation:
     """``camera_height / fitted height`` of the road plane among the rows' points triangulated with the unit pose
-    (see :mod:`dfvo.tracking.ground_plane`); settings ``cfg.road_plane``, height ``cfg.scale.camera_height``."""
+    (see :mod:`dfvo.tracking.ground_plane`); settings ``cfg.road_plane``, ``camera_height`` in metres."""
     rp = cfg.road_plane
     z_i, _, front = triangulated_depths(R, t, K, pts_prev, pts_cur)
     x = normalise_points(pts_prev.to(torch.float64), K.to(torch.float64))
@@ -61,14 +65,14 @@ def camera_height_scale(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, pts_p
     if not bool(plane.success[0]):
         return HeightObservation(None, None, int(plane.num_inliers[0]))
     h = float(plane.height[0])
-    return HeightObservation(float(cfg.scale.camera_height) / h, h, int(plane.num_inliers[0]))
+    return HeightObservation(float(camera_height) / h, h, int(plane.num_inliers[0]), plane.normal[0])
 
 
 def depth_road_height(depth: torch.Tensor, K: torch.Tensor, cfg: TrackerConfig,
-                      generator: torch.Generator | None) -> HeightObservation:
+                      generator: torch.Generator | None, camera_height: float | None = None) -> HeightObservation:
     """The camera height above the road plane of the depth network's own points (depth (1,1,H,W) metres of the
     earlier frame, K (1,3,3)) on a grid of the road band; ``scale`` is ``fitted height / camera_height``: the
-    network's scale factor near the road (1 when its road is metric)."""
+    network's scale factor near the road (1 when its road is metric; None without ``camera_height``)."""
     rp = cfg.road_plane
     H, W = depth.shape[-2:]
     px = road_grid(H, W, rp.min_row_fraction, rp.max_row_fraction, rp.max_col_offset_fraction, rp.grid_step)
@@ -82,7 +86,8 @@ def depth_road_height(depth: torch.Tensor, K: torch.Tensor, cfg: TrackerConfig,
     if not bool(plane.success[0]):
         return HeightObservation(None, None, int(plane.num_inliers[0]))
     h = float(plane.height[0])
-    return HeightObservation(h / float(cfg.scale.camera_height), h, int(plane.num_inliers[0]))
+    return HeightObservation(None if camera_height is None else h / float(camera_height), h,
+                             int(plane.num_inliers[0]), plane.normal[0])
 
 
 class ScaleFusion:
@@ -91,13 +96,14 @@ class ScaleFusion:
     def __init__(self, cfg: TrackerConfig) -> None:
         self.cfg = cfg
         sc, sf = cfg.scale, cfg.scale_filter
-        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=sc.camera_height is not None,
+        self.camera_height = CameraHeight(sc.camera_height, cfg.camera_height)
+        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=self.camera_height.enabled,
                                   cnn_log_std=sf.cnn_log_std, height_log_std=cfg.road_plane.log_std,
                                   motion_log_std=sf.motion_log_std, temporal_log_std=sf.temporal_log_std,
                                   relative_process_std=sf.relative_process_std,
                                   bias_prior_log_std=sf.bias_prior_log_std, bias_log_std=sf.bias_log_std,
                                   gate_sigma=sf.gate_sigma, min_length=sf.min_length,
-                                  max_rejections=sf.max_rejections)
+                                  max_rejections=sf.max_rejections, warmup_frames=sf.warmup_frames)
         self.reset()
 
     def reset(self) -> None:
@@ -111,18 +117,21 @@ class ScaleFusion:
         self.rejections = 0
         self._height_unit: float | None = None
         self._prior = FilterState()
+        self._height_observed = False
+        self.camera_height.reset()
 
     @property
     def uses_fusion(self) -> bool:
         """Anything beyond the CNN-depth scale is on."""
-        return self.cfg.scale.camera_height is not None or self.cfg.scale.temporal
+        return self.camera_height.enabled or self.cfg.scale.temporal
 
     def estimate(self, R: torch.Tensor, t: torch.Tensor, cnn_scale: float | None, pts_prev: torch.Tensor,
                  pts_cur: torch.Tensor, rows: torch.Tensor, K: torch.Tensor, flow: torch.Tensor,
                  inconsistency: torch.Tensor, depth: torch.Tensor, generator: torch.Generator | None,
-                 diag: FrameDiagnostics) -> ScaleEstimate:
-        """This E-tracked frame's fused scale from its observations (``depth`` (1,1,H,W): the earlier frame's CNN
-        depth, for ``road_plane.points=depth``); fills the scale fields of ``diag``."""
+                 diag: FrameDiagnostics, grey_pair: tuple[torch.Tensor, torch.Tensor] | None = None) -> ScaleEstimate:
+        """This frame's fused scale from its observations (``R`` (1,3,3), unit ``t`` (1,3) of ``T_cur_prev``;
+        ``depth`` (1,1,H,W): the earlier frame's CNN depth, for the road plane; ``grey_pair``: the earlier and later
+        grey images (1,1,H,W) for the photometric road scale, None: not used); fills the scale fields of ``diag``."""
         cfg, sf = self.cfg, self.cfg.scale_filter
         diag.scale_cnn = cnn_scale
         temporal_scale, temporal_std = None, None
@@ -130,29 +139,55 @@ class ScaleFusion:
             rel = relative_scale(self.middle, flow, inconsistency, K, R, t, max_inconsistency=sf.max_inconsistency,
                                  min_parallax_deg=sf.min_parallax_deg, min_points=sf.min_points)
             temporal_scale, temporal_std = rel.scale, rel.log_std
+            if temporal_std is not None and sf.temporal_rotation_log_std > 0:
+                # the relative scale re-triangulates the previous pair's points with this pair's pose: its error
+                # grows with the rotation (turns), which the points' own spread does not show
+                angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(R[0].trace()) - 1) / 2))))
+                temporal_std = math.hypot(temporal_std, sf.temporal_rotation_log_std * angle)
             diag.scale_temporal = temporal_scale
-        height, road_bias = None, None
+        height, road_bias, homography = None, None, None
         self._height_unit = None
-        if cfg.scale.camera_height is not None and cfg.road_plane.points == RoadPoints.depth:
-            obs = depth_road_height(depth, K, cfg, generator)
-            road_bias, diag.plane_inliers = obs.scale, obs.inliers
-            if obs.height_unit is not None:  # the network's road height, metres
-                diag.camera_height_fit = obs.height_unit
-        elif cfg.scale.camera_height is not None:
-            obs = camera_height_scale(R, t, K, pts_prev, pts_cur, rows, tuple(flow.shape[-2:]), cfg, generator)
+        network_plane = None
+        if self.camera_height.enabled:
+            network_plane = depth_road_height(depth, K, cfg, generator)  # the network's road, metres
+            if self.camera_height.given is None and not self._height_observed:  # once per frame (E, then PnP)
+                self.camera_height.observe(network_plane.height_unit)
+                self._height_observed = True
+            diag.plane_inliers = network_plane.inliers
+            if network_plane.height_unit is not None:
+                diag.camera_height_fit = network_plane.height_unit
+        h_m = self.camera_height.value
+        diag.camera_height = h_m
+        if self.camera_height.enabled and h_m is None:
+            diag.add_reason(f"scale: {self.camera_height.unavailable_reason}; the depth network's scale is used")
+        if h_m is not None and cfg.road_plane.points == RoadPoints.depth and network_plane.height_unit is not None:
+            road_bias = network_plane.height_unit / h_m
+        elif h_m is not None and cfg.road_plane.points == RoadPoints.triangulated:
+            obs = camera_height_scale(R, t, K, pts_prev, pts_cur, rows, tuple(flow.shape[-2:]), cfg, generator, h_m)
             height, diag.plane_inliers = obs.scale, obs.inliers
             diag.scale_height = height
             self._height_unit = obs.height_unit
         prior = self.filter.prior(temporal_scale, temporal_std)
+        ra = cfg.road_alignment
+        if (ra.enabled and h_m is not None and grey_pair is not None and network_plane is not None
+                and network_plane.normal is not None):
+            expected = h_m / math.exp(prior.x) if prior.known else None
+            found = align_road(grey_pair[0], grey_pair[1], K[0], R[0], t[0], network_plane.normal,
+                               float(network_plane.height_unit), ra, expected)
+            diag.road_alignment_cost = found.cost
+            if found.unit_height is not None:
+                homography = h_m / found.unit_height
+                diag.scale_homography = homography
         est = self.filter.estimate(prior, cnn_scale, height, road_bias,
-                                   temporal_used=temporal_scale is not None and self.filter.state.known)
+                                   temporal_used=temporal_scale is not None and self.filter.state.known,
+                                   homography=homography, homography_log_std=ra.log_std)
         if road_bias is not None and cnn_scale is not None:
             diag.scale_height = cnn_scale / est.bias  # the CNN-depth scale corrected by the estimated factor
         diag.scale_predicted = est.predicted
-        if cfg.scale.camera_height is not None:
+        if self.camera_height.enabled:
             diag.cnn_bias = est.bias
         diag.scale_source = est.source + (f"|rejected:{'+'.join(est.rejected)}" if est.rejected else "")
-        if cfg.scale.camera_height is not None and est.scale is not None and self._height_unit is not None:
+        if h_m is not None and est.scale is not None and self._height_unit is not None:
             diag.camera_height_fit = self._height_unit * est.scale
         self._prior = prior
         return est
@@ -162,8 +197,9 @@ class ScaleFusion:
                   K: torch.Tensor) -> None:
         """After the frame's pose: ``T_cur_prev`` (4,4) tracked (None: constant motion), ``T_prev_cur`` the motion
         used; ``estimate`` the fused scale when the E-tracker's pose was used with it; rows (N,) of (N,2) pixels."""
+        self._height_observed = False
         length = float(T_prev_cur[:3, 3].norm())
-        if tracker == TrackerUsed.essential and estimate is not None and estimate.scale is not None:
+        if tracker in (TrackerUsed.essential, TrackerUsed.pnp) and estimate is not None and estimate.scale is not None:
             self.filter.commit(estimate.state if abs(estimate.scale - length) <= 1e-9 * max(1.0, length)
                                else self._state_at(length), estimate.all_rejected)
         elif tracker == TrackerUsed.constant_motion:
@@ -173,7 +209,10 @@ class ScaleFusion:
             self.filter.commit_length(length, self.cfg.scale_filter.cnn_log_std, self.filter.prior())
         if T_cur_prev is not None:
             self._recent = (self._recent + [length])[-int(self.cfg.gate.length_window):]
-            self.expected_length = sorted(self._recent)[len(self._recent) // 2]  # median of the last tracked lengths
+            # median of the last tracked lengths, once there are as many as the window: one wrong first length (the
+            # network's scale before anything else is known) cannot make the correct lengths after it "implausible"
+            full = len(self._recent) >= int(self.cfg.gate.length_window)
+            self.expected_length = sorted(self._recent)[len(self._recent) // 2] if full else None
             self.expected_direction = T_prev_cur[:3, 3] / length if length > self.cfg.gate.stop_length else None
         self.middle = None
         if T_cur_prev is not None and self.cfg.scale.temporal and length >= self.cfg.scale_filter.min_length:
