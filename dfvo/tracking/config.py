@@ -73,8 +73,11 @@ class ModelSelectionConfig:
         flow_magnitude_threshold: ``flow``: PnP when the median flow is at most this many pixels.
         min_parallax_px: E is kept, whatever ``method`` prefers, when its inliers' median image motion beyond the
             camera's rotation is at least this many pixels (the translation is visible, so its direction is
-            measurable: a turning car at any speed). null: the paper (the method alone decides). Measured in
-            docs/scale.md (KITTI 07's turns).
+            measurable: a turning car at any speed), and (with ``gric``) the homography's median residual on E's
+            inliers is at least ``min_homography_residual_ratio`` times E's own, taken as at least
+            ``residual_floor_px`` (the selected flow's noise) (not one plane: on a planar scene E's decomposition is
+            ambiguous and GRIC's choice stands). null: the paper (the method alone decides).
+            Measured in docs/scale.md (KITTI 07's turns).
     """
 
     method: ModelSelectionMethod = ModelSelectionMethod.gric
@@ -83,6 +86,8 @@ class ModelSelectionConfig:
     gric_sigma: float = 0.8
     flow_magnitude_threshold: float = 5.0
     min_parallax_px: float | None = 1.0
+    min_homography_residual_ratio: float = 2.0
+    residual_floor_px: float = 0.05
 
     def __post_init__(self) -> None:
         self.method = choice(ModelSelectionMethod, self.method, "tracker.model_selection.method")
@@ -156,16 +161,21 @@ class ScaleConfig:
 
 @dataclass
 class RoadPlaneConfig:
-    """The road-plane fit of the camera-height scale (``tracker.road_plane``; used when
-    ``tracker.scale.camera_height`` is set).
+    """The road plane of the camera-height scale (``tracker.road_plane``; used when a camera height is given or
+    estimated): the depth network's plane always places the photometric road patch and gives the camera-height
+    estimate (:mod:`dfvo.tracking.road_scale`, :mod:`dfvo.tracking.camera_height`); ``points`` chooses whether a plane
+    fit is also a scale observation of its own.
 
     Attributes:
-        points: ``triangulated``: the plane among the E-tracker's selected inliers triangulated with its unit pose;
-            ``camera_height / fitted height`` observes the translation's length (needs good flow on the road).
-            ``depth`` (default): the plane of the depth network's own points of the earlier frame (a pixel grid
-            every ``grid_step`` px in the band); ``fitted height / camera_height`` observes the network's scale factor
-            near the road, which the filter divides out of the CNN-depth scale. ``depth`` is the default because the
-            shipped flow is too poor on the road for ``triangulated`` (measurements: docs/scale.md).
+        points: ``none`` (default): no plane-fit observation; the photometric road scale (``tracker.road_alignment``)
+            observes the length and the CNN-depth scale's bias is learnt against it. ``depth``: the plane of the
+            depth network's own points of the earlier frame (a pixel grid every ``grid_step`` px in the band);
+            ``fitted height / camera_height`` observes the network's scale factor near the road, which the filter
+            divides out of the CNN-depth scale (the default before the photometric road scale: the network's bias
+            near the road is not its bias at the correspondences, 3 % vs 7 % on KITTI 07). ``triangulated``: the plane
+            among the E-tracker's selected inliers triangulated with its unit pose; ``camera_height / fitted height``
+            observes the translation's length (needs good flow on the road, which the shipped flow is not).
+            Measurements: docs/scale.md.
         min_row_fraction, max_row_fraction: candidate points lie in this band of image rows (fractions of the height;
             the lower image, above the bottom rows whose points leave the next image).
         max_col_offset_fraction: ... and within this fraction of the image width of its centre column.
@@ -180,7 +190,7 @@ class RoadPlaneConfig:
             (the values measured per dataset: docs/scale.md).
     """
 
-    points: RoadPoints = RoadPoints.depth
+    points: RoadPoints = RoadPoints.none
     min_row_fraction: float = 0.7
     max_row_fraction: float = 0.87
     max_col_offset_fraction: float = 0.2
@@ -247,6 +257,9 @@ class RoadAlignmentConfig:
         min_depth, max_depth: the patch covers the road this far ahead of the camera (metres, placed with the depth
             network's road plane), moved further by ``motion_margin`` times the expected travel (fast motion: the
             near road leaves the later image). half_width: ... and this far either side of the line of sight.
+        normal_from_motion: the road normal is the network's, with its component along the E-tracker's translation
+            removed (a car moves along its road): the network's plane pitch is often off by ~0.5 deg, which moves the
+            road's distance by ~5 % at 10 m; the translation's direction fixes the pitch. false: the network's normal.
         min_pixels: a smaller patch (a low-resolution image, or a camera that sees no road there) gives nothing.
         span, steps: with a prediction the search covers the expected unit height times/divided by ``span`` in
             ``2 steps - 1`` log-spaced samples; without one, or when nothing is found there, the whole
@@ -264,7 +277,7 @@ class RoadAlignmentConfig:
     max_depth: float = 15.0
     motion_margin: float = 1.0
     half_width: float = 2.5
-    normal_from_motion: bool = False
+    normal_from_motion: bool = True
     min_pixels: int = 500
     span: float = 2.0
     steps: int = 21
@@ -302,7 +315,9 @@ class ScaleFilterConfig:
         bias_prior_log_std, bias_log_std: prior std of the depth network's log scale bias and its per-frame random
             walk (estimated only with ``camera_height`` and ``temporal``).
         gate_sigma: absolute observations further than this many standard deviations from the prediction are
-            rejected (once the filter has converged).
+            rejected (once the filter has converged). When the absolute observations together disagree with the
+            prediction beyond it, the frame counts towards ``max_rejections`` (a prediction that ran away, e.g. a
+            relative scale wrong over several frames of a turn, cannot outvote them for long).
         max_inconsistency: forward-backward inconsistency (px) allowed at the previous pair's points.
         min_parallax_deg: both triangulations of a shared point need this parallax.
         min_points: fewer shared points: no relative scale this frame.
@@ -311,6 +326,9 @@ class ScaleFilterConfig:
         max_rejections: frames in a row whose absolute observations were all gated out before the filter restarts.
         warmup_frames: no observation is gated out before this many frames have been fused since the scale was
             last unknown (the start of a sequence, after a stop): the first observation only starts the average.
+        temporal_rotation_log_std: added (per degree of the pair's rotation) to the three-frame relative scale's
+            standard error: it re-triangulates the previous pair's points with this pair's pose, and its error grows in
+            turns, which the points' own spread does not show.
     """
 
     cnn_log_std: float = 0.1
@@ -319,14 +337,14 @@ class ScaleFilterConfig:
     relative_process_std: float = 0.005
     bias_prior_log_std: float = 0.5
     bias_log_std: float = 0.005
-    gate_sigma: float = 4.0
+    gate_sigma: float = 3.0
     max_inconsistency: float = 0.5
     min_parallax_deg: float = 0.5
     min_points: int = 20
     min_length: float = 0.1
     max_rejections: int = 3
     warmup_frames: int = 5
-    temporal_rotation_log_std: float = 0.0
+    temporal_rotation_log_std: float = 0.005
 
     def __post_init__(self) -> None:
         for name in ("cnn_log_std", "motion_log_std", "temporal_log_std", "gate_sigma", "max_inconsistency"):
@@ -342,6 +360,9 @@ class GateConfig:
     Attributes:
         enabled: false: every result is used (the paper).
         max_length_ratio: a translation more than this factor longer (or shorter) than the expected one is rejected.
+        warmup_length_ratio: the factor while the expectation rests on fewer than ``length_window`` lengths (a
+            sequence's first frames, whose scale may be far off: at highway speed the first frame's CNN scale can be
+            half the truth, and the right lengths after it must not be rejected).
         min_reference_length: the expected length is taken as at least this (m) when judging "too long" (starts from
             standstill). stop_length, stop_flow_px: a translation this short is a stop, never "too short", when the
             image agrees (90 % of the selected correspondences move at most ``stop_flow_px`` pixels beyond the
@@ -359,6 +380,7 @@ class GateConfig:
 
     enabled: bool = True
     max_length_ratio: float = 2.0
+    warmup_length_ratio: float = 4.0
     min_reference_length: float = 0.7
     stop_length: float = 0.1
     stop_flow_px: float = 1.0

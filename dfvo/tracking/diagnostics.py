@@ -40,6 +40,8 @@ class FrameDiagnostics:
             inliers. camera_height_fit: the fitted camera height in metres (triangulated: at the scale used; depth:
             the network's own road height).
         camera_height: the camera height (metres) the road observations used (given or estimated; None: none).
+        camera_height_unavailable: why there is no camera height on this frame (an own video's first frames, no
+            steady road in view): the scale is then the depth network's alone.
         scale_homography: the photometric road scale (``tracker.road_alignment``): the camera height over the
             road's distance in the unit translation's unit. road_alignment_cost: its 1 - ZNCC at the optimum.
         scale_temporal: this pair's length from the three-frame relative scale (``tracker.scale.temporal``).
@@ -70,6 +72,7 @@ class FrameDiagnostics:
     plane_inliers: int | None = None
     camera_height_fit: float | None = None
     camera_height: float | None = None
+    camera_height_unavailable: str | None = None
     scale_homography: float | None = None
     road_alignment_cost: float | None = None
     scale_temporal: float | None = None

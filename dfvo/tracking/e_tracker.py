@@ -17,7 +17,12 @@ import torch
 from dfvo.geometry.gric import gric_essential, gric_homography
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, find_homography_ransac
 from dfvo.tracking.config import ModelSelectionMethod, TrackerConfig
-from dfvo.tracking.model_selection import prefer_pnp_flow, prefer_pnp_gric, rotation_compensated_parallax
+from dfvo.tracking.model_selection import (
+    homography_to_essential_residual,
+    prefer_pnp_flow,
+    prefer_pnp_gric,
+    rotation_compensated_parallax,
+)
 from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depths
 
 __all__ = ["ETrackerResult", "track_essential", "essential_scale"]
@@ -83,7 +88,14 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
         pnp_wanted = prefer_pnp_flow(pts_i, pts_j, mask, sel.flow_magnitude_threshold)
     parallax = rotation_compensated_parallax(pts_i, pts_j, mask & ransac.inliers, R, K)
     if sel.min_parallax_px is not None:  # the translation is visible: E's direction is measurable (parallax rule)
-        pnp_wanted = pnp_wanted & ~(parallax >= sel.min_parallax_px)
+        visible = parallax >= sel.min_parallax_px
+        if sel.method == ModelSelectionMethod.gric:
+            # ... and the scene is not a plane: the homography explains E's inliers clearly worse than E does (on a
+            # planar scene with a translation H fits them as well as E, and E's decomposition is ambiguous)
+            visible = visible & (homography_to_essential_residual(H.model, ransac.model, K, pts_i, pts_j,
+                                                                  mask & ransac.inliers, sel.residual_floor_px)
+                                 >= sel.min_homography_residual_ratio)
+        pnp_wanted = pnp_wanted & ~visible
     reasons: list[str | None] = []
     valid = torch.zeros(B, dtype=torch.bool, device=pts_i.device)
     for b in range(B):

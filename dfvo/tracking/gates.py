@@ -51,23 +51,25 @@ def check_support(kind: str, num_inliers: int, num_rows: int, cfg: GateConfig) -
 
 
 def check_length(kind: str, length: float, expected: float | None, cfg: GateConfig,
-                 image_motion_px: float | None = None) -> str | None:
+                 image_motion_px: float | None = None, settled: bool = True) -> str | None:
     """Why a translation of ``length`` metres from tracker ``kind`` is implausible given the ``expected`` length
     (None: no expectation yet, nothing is judged): more than ``cfg.max_length_ratio`` times ``max(expected,
     cfg.min_reference_length)``, or shorter than ``expected / cfg.max_length_ratio``, unless it is a stop: at most
     ``cfg.stop_length`` while the image shows no parallax either (``image_motion_px``, :func:`image_parallax_px` of
     the selected correspondences, at most ``cfg.stop_flow_px``; None: not known, the length alone decides). A tracker
     locked onto a vehicle moving with the camera reports a "stop" while the static scene still streams past.
-    None when plausible (or the gates are off)."""
+    ``settled``: false while the expectation rests on fewer than ``cfg.length_window`` lengths (a sequence's first
+    frames, whose scale may be far off): the wider ``cfg.warmup_length_ratio`` applies. None when plausible (or the
+    gates are off)."""
     if not cfg.enabled or expected is None or not expected > 0:
         return None
-    if length > cfg.max_length_ratio * max(expected, cfg.min_reference_length):
-        return f"gate: {kind} translation {length:.3g} m > {cfg.max_length_ratio:g} x the expected {expected:.3g} m"
+    ratio = cfg.max_length_ratio if settled else max(cfg.max_length_ratio, cfg.warmup_length_ratio)
+    if length > ratio * max(expected, cfg.min_reference_length):
+        return f"gate: {kind} translation {length:.3g} m > {ratio:g} x the expected {expected:.3g} m"
     still = image_motion_px is None or image_motion_px <= cfg.stop_flow_px
-    if length * cfg.max_length_ratio < expected and (length > cfg.stop_length or not still):
+    if length * ratio < expected and (length > cfg.stop_length or not still):
         moving = "" if still else f" (not a stop: {image_motion_px:.3g} px of parallax)"
-        return f"gate: {kind} translation {length:.3g} m < the expected {expected:.3g} m / " \
-               f"{cfg.max_length_ratio:g}{moving}"
+        return f"gate: {kind} translation {length:.3g} m < the expected {expected:.3g} m / {ratio:g}{moving}"
     return None
 
 

@@ -6,7 +6,9 @@ from __future__ import annotations
 import torch
 from kornia.core.check import KORNIA_CHECK_SHAPE
 
-__all__ = ["prefer_pnp_gric", "prefer_pnp_flow", "rotation_compensated_parallax"]
+from dfvo.geometry.two_view import homography_error_sq, sampson_sq
+
+__all__ = ["prefer_pnp_gric", "prefer_pnp_flow", "rotation_compensated_parallax", "homography_to_essential_residual"]
 
 
 def prefer_pnp_gric(gric_e: torch.Tensor, gric_h: torch.Tensor) -> torch.Tensor:
@@ -28,8 +30,8 @@ def prefer_pnp_flow(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
 
 
 def rotation_compensated_parallax(pts_i: torch.Tensor, pts_j: torch.Tensor, rows: torch.Tensor, R: torch.Tensor,
-                                  K: torch.Tensor, quantile: float = 0.5) -> torch.Tensor:
-    """(B,) float64: the ``quantile`` over ``rows`` (B,N) of the distance (pixels) between ``pts_j`` (B,N,2) and
+                                  K: torch.Tensor, level: float = 0.5) -> torch.Tensor:
+    """(B,) float64: the quantile ``level`` over ``rows`` (B,N) of the distance (pixels) between ``pts_j`` (B,N,2) and
     ``pts_i`` (B,N,2) carried by the rotation ``R`` (B,3,3) of ``T_cur_prev`` alone (the infinite homography
     ``K R K^-1``, K (B,3,3)); NaN where a pair has no rows.
 
@@ -49,5 +51,24 @@ def rotation_compensated_parallax(pts_i: torch.Tensor, pts_j: torch.Tensor, rows
     for b in range(pts_i.shape[0]):
         d = dist[b][rows[b]]
         if d.numel():
-            out[b] = d.quantile(quantile)
+            out[b] = d.quantile(level)
+    return out
+
+
+def homography_to_essential_residual(H: torch.Tensor, E: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor,
+                                     pts_j: torch.Tensor, rows: torch.Tensor, floor_px: float) -> torch.Tensor:
+    """(B,) float64: the median geometric residual (pixels) of ``rows`` (B,N) under the homography ``H`` (B,3,3; pixels,
+    ``x_j ~ H x_i``) over their median Sampson residual under the essential matrix ``E`` (B,3,3; normalised
+    coordinates, K (B,3,3)), the latter at least ``floor_px`` (the flow's own noise: on exact data both residuals
+    vanish); NaN where a pair has no rows. Near 1 or below when one plane carries the points (a planar scene: H fits
+    them as well as E); several times 1 when their depths vary."""
+    Kinv = torch.linalg.inv(K.to(torch.float64))
+    F = Kinv.transpose(-1, -2) @ E.to(torch.float64) @ Kinv
+    pi, pj = pts_i.to(torch.float64), pts_j.to(torch.float64)
+    e_res = sampson_sq(F[:, None], pi, pj)[:, 0].sqrt()
+    h_res = homography_error_sq(H.to(torch.float64)[:, None], pi, pj)[:, 0].sqrt()
+    out = torch.full((pi.shape[0],), float("nan"), dtype=torch.float64, device=pi.device)
+    for b in range(pi.shape[0]):
+        if bool(rows[b].any()):
+            out[b] = h_res[b][rows[b]].median() / e_res[b][rows[b]].median().clamp_min(floor_px)
     return out

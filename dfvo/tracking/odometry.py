@@ -343,7 +343,8 @@ class VisualOdometry:
         elif not ok:
             return None, failed
         too_far = self._gate(st, check_length("E", s, self.fusion.expected_length, cfg.gate,
-                                              image_parallax_px(pi[0][rows], pj[0][rows], R[0], K[0])))
+                                              image_parallax_px(pi[0][rows], pj[0][rows], R[0], K[0]),
+                                              self.fusion.expectation_settled))
         if too_far is not None:
             predicted = None if st.estimate is None else st.estimate.predicted
             if predicted is None or not cfg.scale.temporal:
@@ -392,7 +393,8 @@ class VisualOdometry:
             direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])
             reason = self._gate(st, check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
                                 or check_length("PnP", length, self.fusion.expected_length, cfg.gate,
-                                                image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K))
+                                                image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K),
+                                                self.fusion.expectation_settled)
                                 or check_direction("PnP", direction, self.fusion.expected_direction, length,
                                                    cfg.gate))
             if reason is not None:

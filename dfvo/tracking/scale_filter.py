@@ -110,6 +110,15 @@ class ScaleFilter:
         self.rejected_frames = 0
         self.observed_frames = 0
 
+    def start_bias_estimate(self) -> None:
+        """From now on track the CNN bias ``b`` (a camera height has become available: the road observations make it
+        observable), starting from its prior; no-op when it is tracked already."""
+        if self.estimate_bias:
+            return
+        self.estimate_bias = True
+        if self.state is not None:
+            self.state = replace(self.state, pbb=self.state.pbb + self.bias_prior_var)
+
     # ------------------------------------------------------------------------------------------ one frame
     def prior(self, temporal_scale: float | None = None, temporal_log_std: float | None = None) -> FilterState:
         """The state predicted for this frame (``temporal_scale``: this pair's length from the relative scale)."""

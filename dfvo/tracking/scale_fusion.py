@@ -97,7 +97,7 @@ class ScaleFusion:
         self.cfg = cfg
         sc, sf = cfg.scale, cfg.scale_filter
         self.camera_height = CameraHeight(sc.camera_height, cfg.camera_height)
-        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=self.camera_height.enabled,
+        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=self.camera_height.given is not None,
                                   cnn_log_std=sf.cnn_log_std, height_log_std=cfg.road_plane.log_std,
                                   motion_log_std=sf.motion_log_std, temporal_log_std=sf.temporal_log_std,
                                   relative_process_std=sf.relative_process_std,
@@ -112,6 +112,7 @@ class ScaleFusion:
         self.filter.reset()
         self.middle: MiddleDepths | None = None
         self.expected_length: float | None = None
+        self.expectation_settled = False
         self._recent: list[float] = []
         self.expected_direction: torch.Tensor | None = None
         self.rejections = 0
@@ -148,7 +149,10 @@ class ScaleFusion:
         height, road_bias, homography = None, None, None
         self._height_unit = None
         network_plane = None
-        if self.camera_height.enabled:
+        ra = cfg.road_alignment
+        needs_plane = (self.camera_height.given is None or cfg.road_plane.points == RoadPoints.depth
+                       or (ra.enabled and grey_pair is not None))
+        if self.camera_height.enabled and needs_plane:
             network_plane = depth_road_height(depth, K, cfg, generator)  # the network's road, metres
             if self.camera_height.given is None and not self._height_observed:  # once per frame (E, then PnP)
                 self.camera_height.observe(network_plane.height_unit)
@@ -158,9 +162,12 @@ class ScaleFusion:
                 diag.camera_height_fit = network_plane.height_unit
         h_m = self.camera_height.value
         diag.camera_height = h_m
-        if self.camera_height.enabled and h_m is None:
-            diag.add_reason(f"scale: {self.camera_height.unavailable_reason}; the depth network's scale is used")
-        if h_m is not None and cfg.road_plane.points == RoadPoints.depth and network_plane.height_unit is not None:
+        if h_m is not None:
+            self.filter.start_bias_estimate()  # an estimated height: the network's bias is observable from now on
+        elif self.camera_height.enabled:  # flagged per frame: the scale is the depth network's alone
+            diag.camera_height_unavailable = self.camera_height.unavailable_reason
+        if (h_m is not None and cfg.road_plane.points == RoadPoints.depth and network_plane is not None
+                and network_plane.height_unit is not None):
             road_bias = network_plane.height_unit / h_m
         elif h_m is not None and cfg.road_plane.points == RoadPoints.triangulated:
             obs = camera_height_scale(R, t, K, pts_prev, pts_cur, rows, tuple(flow.shape[-2:]), cfg, generator, h_m)
@@ -168,7 +175,6 @@ class ScaleFusion:
             diag.scale_height = height
             self._height_unit = obs.height_unit
         prior = self.filter.prior(temporal_scale, temporal_std)
-        ra = cfg.road_alignment
         if (ra.enabled and h_m is not None and grey_pair is not None and network_plane is not None
                 and network_plane.normal is not None):
             expected = h_m / math.exp(prior.x) if prior.known else None
@@ -209,10 +215,11 @@ class ScaleFusion:
             self.filter.commit_length(length, self.cfg.scale_filter.cnn_log_std, self.filter.prior())
         if T_cur_prev is not None:
             self._recent = (self._recent + [length])[-int(self.cfg.gate.length_window):]
-            # median of the last tracked lengths, once there are as many as the window: one wrong first length (the
-            # network's scale before anything else is known) cannot make the correct lengths after it "implausible"
-            full = len(self._recent) >= int(self.cfg.gate.length_window)
-            self.expected_length = sorted(self._recent)[len(self._recent) // 2] if full else None
+            # median of the last tracked lengths; until the window is full the gate judges it with its wider warm-up
+            # ratio, so one wrong first length (the network's scale before anything else is known) cannot make the
+            # correct lengths after it "implausible", while an absurd one is still caught
+            self.expected_length = sorted(self._recent)[len(self._recent) // 2]
+            self.expectation_settled = len(self._recent) >= int(self.cfg.gate.length_window)
             self.expected_direction = T_prev_cur[:3, 3] / length if length > self.cfg.gate.stop_length else None
         self.middle = None
         if T_cur_prev is not None and self.cfg.scale.temporal and length >= self.cfg.scale_filter.min_length:
@@ -223,6 +230,7 @@ class ScaleFusion:
         expectation, the filter forgets the scale (the CNN bias estimate is kept) and no relative scale is taken
         from this frame's points."""
         self.expected_length, self.expected_direction, self._recent = None, None, []
+        self.expectation_settled = False
         self.filter.reset()
         self.middle = None
 

@@ -9,7 +9,7 @@ import torch
 import dfvo.tracking.odometry as odometry
 from dfvo.synthetic import CAMERA_HEIGHT, SyntheticWorld
 from dfvo.tracking import TrackerConfig, VisualOdometry
-from dfvo.tracking.config import GateConfig, RoadPlaneConfig, ScaleConfig
+from dfvo.tracking.config import CameraHeightConfig, GateConfig, RoadPlaneConfig, ScaleConfig
 from dfvo.tracking.gates import check_length, check_support, image_parallax_px
 from dfvo.tracking.ground_plane import fit_road_plane
 from dfvo.tracking.scale_filter import ScaleFilter
@@ -38,8 +38,11 @@ def lengths(results) -> torch.Tensor:
 
 
 def cfg_with(**scale) -> TrackerConfig:
+    """The E-tracker with one-view scale and ``scale`` settings; no estimated camera height (a test that wants the
+    height gives it)."""
     road = scale.pop("road", {})
-    return TrackerConfig(mode="e", scale=ScaleConfig(depth_views=1, **scale), road_plane=RoadPlaneConfig(**road))
+    return TrackerConfig(mode="e", scale=ScaleConfig(depth_views=1, **scale), road_plane=RoadPlaneConfig(**road),
+                         camera_height=CameraHeightConfig(estimate=False))
 
 
 @pytest.mark.parametrize("temporal", [False, True])
@@ -134,7 +137,7 @@ def test_temporal_filter_keeps_the_scale_through_the_network_s_frame_noise(strai
 def test_scale_filter_fusion_prediction_and_gating():
     f = ScaleFilter(temporal=True, estimate_bias=False, cnn_log_std=0.1, height_log_std=0.05, motion_log_std=0.1,
                     temporal_log_std=0.01, relative_process_std=0.0, bias_prior_log_std=0.5, bias_log_std=0.0,
-                    gate_sigma=4.0)
+                    gate_sigma=4.0, warmup_frames=0)
     est = f.estimate(f.prior(), cnn=1.0, height=1.2)  # first frame: inverse-variance weights 1/0.01 and 1/0.0025
     assert est.source == "height+cnn"
     assert math.isclose(math.log(est.scale), (0.0 * 100 + math.log(1.2) * 400) / 500, rel_tol=1e-5)
@@ -207,14 +210,14 @@ def test_gate_rejects_a_planted_absurd_pnp_result(monkeypatch):
         return T, ok, nin
 
     monkeypatch.setattr(odometry, "track_pnp", planted)
-    res = VisualOdometry(TrackerConfig(scale=ScaleConfig(depth_views=1))).run(ff, fb, d, w.intrinsics(),
-                                                                             batch_size=3)
+    pnp_alone = ScaleConfig(depth_views=1, fuse_pnp=False)  # PnP's own length: what its gate judges
+    res = VisualOdometry(TrackerConfig(scale=pnp_alone)).run(ff, fb, d, w.intrinsics(), batch_size=3)
     assert [r.diagnostics.tracker for r in res] == ["PnP", "constant_motion", "PnP"]
     bad = res[1].diagnostics
     assert bad.gate_rejected and "gate: PnP translation 42" in bad.fallback_reason
     assert torch.equal(res[1].T_prev_cur, res[0].T_prev_cur)
     calls.clear()
-    off = VisualOdometry(TrackerConfig(scale=ScaleConfig(depth_views=1), gate=GateConfig(enabled=False))).run(
+    off = VisualOdometry(TrackerConfig(scale=pnp_alone, gate=GateConfig(enabled=False))).run(
         ff, fb, d, w.intrinsics(), batch_size=3)
     assert off[1].diagnostics.tracker == "PnP" and abs(float(off[1].T_prev_cur[:3, 3].norm()) - 42.0) < 1e-6
 
