@@ -172,7 +172,7 @@ def _track_stage(work: _Batch, vo: VisualOdometry, K: torch.Tensor, timer: Stage
     n = len(work.idx)
     with timer("tracker"):  # only this thread tracks: last["tracker"] is this call's
         results = vo.run(work.flow_fwd, work.flow_bwd, work.depth, K.expand(n, 3, 3), batch_size=n,
-                         depths_next=work.depth_next)
+                         depths_next=work.depth_next, images=work.imgs)
     for part in ("selection", "e_tracker", "sequential"):  # the tracker's own split of its time
         timer.add(f"tracker_{part}", sum(getattr(r.diagnostics, f"time_{part}", 0.0) for r in results))
     work.share["t_tracker"] = timer.last["tracker"] / n

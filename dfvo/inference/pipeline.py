@@ -35,7 +35,7 @@ from dfvo.inference.outputs import (
     writing,
 )
 from dfvo.inference.recording import RunInterrupted, SignalsToInterrupt, stamp, write_frame
-from dfvo.inference.report import finish_run
+from dfvo.inference.report import camera_height_report, finish_run
 from dfvo.inference.timing import StageTimer
 from dfvo.io.json_io import write_json
 from dfvo.io.trajectory import TrajectoryWriter
@@ -156,6 +156,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
         extra = {**extra, "error": str(failed)}
         log.error("stopped by an error after %d of %d poses (%s); writing partial results", len(trajectory),
                   seq.length, failed)
+    extra = {**extra, "camera_height": camera_height_report(vo)}
     try:
         summary = finish_run(seq, np.stack(trajectory), diagnostics, timer, wall, out, align=cfg.align,
                              pose_file=pose_file, warn_fallback_rate=cfg.warn_fallback_rate, partial=partial,

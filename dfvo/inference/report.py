@@ -52,6 +52,23 @@ def hydra_overrides() -> dict[str, str]:
     return out
 
 
+def camera_height_report(vo: Any) -> dict[str, Any] | None:
+    """``summary.json``'s ``camera_height``: the height the road observations used (given, or estimated from the
+    depth network's road plane: value, spread, frames with a plane, or why it is unavailable); logged once. None when
+    the run had none (``experiment=paper``)."""
+    height = vo.fusion.camera_height
+    if not height.enabled:
+        return None
+    report = height.report()
+    if report["source"] == "estimated":
+        log.info("camera height estimated from the depth network's road plane: %.3f m (spread %.1f %%, %d of %d "
+                 "frames with a plane)", report["value_m"], 100 * (report["spread"] or 0.0),
+                 report["frames_with_plane"], report["frames"])
+    elif report["source"] is None:
+        log.warning("no camera height: %s; the scale is the depth network's alone", report["unavailable_reason"])
+    return report
+
+
 def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiagnostics], timer: StageTimer,
                wall: float, out: Path, *, align: str, pose_file: Path, warn_fallback_rate: float,
                partial: str | None = None, extra: dict[str, Any] | None = None) -> dict[str, Any]:

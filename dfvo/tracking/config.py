@@ -260,7 +260,9 @@ class RoadAlignmentConfig:
         normal_from_motion: the road normal is the network's, with its component along the E-tracker's translation
             removed (a car moves along its road): the network's plane pitch is often off by ~0.5 deg, which moves the
             road's distance by ~5 % at 10 m; the translation's direction fixes the pitch. false: the network's normal.
-        min_pixels: a smaller patch (a low-resolution image, or a camera that sees no road there) gives nothing.
+        min_pixels: a smaller patch (a low-resolution image, or a camera that sees no road there) gives nothing. On
+            the synthetic drive with exact depth the road scale errs by 1-2 % at 192x640 (a 6,000-12,000 px patch) and
+            by 3-13 % at 96x320 (1,400-2,900 px).
         span, steps: with a prediction the search covers the expected unit height times/divided by ``span`` in
             ``2 steps - 1`` log-spaced samples; without one, or when nothing is found there, the whole
             ``wide_range`` (camera height over translation length: 0.3..100 covers 1.65 m at 0.017-5.5 m a frame) in
@@ -278,7 +280,7 @@ class RoadAlignmentConfig:
     motion_margin: float = 1.0
     half_width: float = 2.5
     normal_from_motion: bool = True
-    min_pixels: int = 500
+    min_pixels: int = 3000
     span: float = 2.0
     steps: int = 21
     coarse_step: float = 0.05

@@ -102,9 +102,11 @@ class ScaleFilter:
         self.observed_frames = 0
         self.reset()
 
-    def reset(self) -> None:
-        """Forget the scale (the next frame starts from its own observations); the CNN bias estimate is kept."""
-        b, pbb = (self.state.b, self.state.pbb) if getattr(self, "state", None) is not None else \
+    def reset(self, bias_from: FilterState | None = None) -> None:
+        """Forget the scale (the next frame starts from its own observations); the CNN bias estimate is kept, or
+        taken from ``bias_from`` (e.g. the state before a frame whose result is not to be learnt from)."""
+        kept = bias_from if bias_from is not None else getattr(self, "state", None)
+        b, pbb = (kept.b, kept.pbb) if kept is not None else \
             (0.0, self.bias_prior_var if self.estimate_bias else 0.0)
         self.state = FilterState(b=b, pbb=pbb)
         self.rejected_frames = 0
@@ -118,6 +120,13 @@ class ScaleFilter:
         self.estimate_bias = True
         if self.state is not None:
             self.state = replace(self.state, pbb=self.state.pbb + self.bias_prior_var)
+
+    def prior_with_bias(self, prior: FilterState) -> FilterState:
+        """``prior`` (of :meth:`prior`) with the bias's prior variance added when it is untracked so far (its variance
+        zero: :meth:`start_bias_estimate` was called after the prior was formed)."""
+        if self.estimate_bias and prior.pbb == 0.0:
+            return replace(prior, pbb=self.bias_prior_var)
+        return prior
 
     # ------------------------------------------------------------------------------------------ one frame
     def prior(self, temporal_scale: float | None = None, temporal_log_std: float | None = None) -> FilterState:

@@ -97,7 +97,7 @@ class ScaleFusion:
         self.cfg = cfg
         sc, sf = cfg.scale, cfg.scale_filter
         self.camera_height = CameraHeight(sc.camera_height, cfg.camera_height)
-        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=self.camera_height.given is not None,
+        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=False,
                                   cnn_log_std=sf.cnn_log_std, height_log_std=cfg.road_plane.log_std,
                                   motion_log_std=sf.motion_log_std, temporal_log_std=sf.temporal_log_std,
                                   relative_process_std=sf.relative_process_std,
@@ -162,9 +162,7 @@ class ScaleFusion:
                 diag.camera_height_fit = network_plane.height_unit
         h_m = self.camera_height.value
         diag.camera_height = h_m
-        if h_m is not None:
-            self.filter.start_bias_estimate()  # an estimated height: the network's bias is observable from now on
-        elif self.camera_height.enabled:  # flagged per frame: the scale is the depth network's alone
+        if h_m is None and self.camera_height.enabled:  # flagged per frame: the scale is the depth network's alone
             diag.camera_height_unavailable = self.camera_height.unavailable_reason
         if (h_m is not None and cfg.road_plane.points == RoadPoints.depth and network_plane is not None
                 and network_plane.height_unit is not None):
@@ -184,6 +182,11 @@ class ScaleFusion:
             if found.unit_height is not None:
                 homography = h_m / found.unit_height
                 diag.scale_homography = homography
+        if road_bias is not None or height is not None or homography is not None:
+            # an observation of the metric scale other than the network's own: its bias is observable from now on
+            # (without one it is not, and a wrong frame's CNN scale would stay in it for the rest of the run)
+            self.filter.start_bias_estimate()
+            prior = self.filter.prior_with_bias(prior)
         est = self.filter.estimate(prior, cnn_scale, height, road_bias,
                                    temporal_used=temporal_scale is not None and self.filter.state.known,
                                    homography=homography, homography_log_std=ra.log_std)
@@ -227,11 +230,11 @@ class ScaleFusion:
 
     def forget_motion(self) -> None:
         """After a result accepted against the gates (it may be wrong itself): the gates judge the next frame by no
-        expectation, the filter forgets the scale (the CNN bias estimate is kept) and no relative scale is taken
-        from this frame's points."""
+        expectation, the filter forgets the scale, the CNN bias estimate is the one from before this frame (the
+        result's own CNN scale is not learnt) and no relative scale is taken from this frame's points."""
         self.expected_length, self.expected_direction, self._recent = None, None, []
         self.expectation_settled = False
-        self.filter.reset()
+        self.filter.reset(bias_from=self._prior)
         self.middle = None
 
     def _state_at(self, length: float) -> FilterState:

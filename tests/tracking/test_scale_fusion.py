@@ -18,6 +18,7 @@ from dfvo.tracking.temporal_scale import middle_depths, relative_scale
 torch.set_num_threads(1)
 
 TRIANGULATED = {"points": "triangulated"}
+NETWORK_DEPTH = {"points": "depth"}
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +47,7 @@ def cfg_with(**scale) -> TrackerConfig:
 
 
 @pytest.mark.parametrize("temporal", [False, True])
-@pytest.mark.parametrize("road", [TRIANGULATED, {}], ids=["triangulated", "depth"])
+@pytest.mark.parametrize("road", [TRIANGULATED, NETWORK_DEPTH], ids=["triangulated", "depth"])
 def test_camera_height_corrects_a_biased_depth(straight, temporal, road):
     """Depth 30 % too far: the paper's scale makes every translation 1.3x too long; the camera-height prior
     (the road plane of the triangulated points, or of the network's own depth) brings each one within 1 %."""
@@ -63,9 +64,13 @@ def test_camera_height_corrects_a_biased_depth(straight, temporal, road):
         assert "cnn" in r.diagnostics.scale_source
     if temporal:  # the CNN's factor is learnt over frames: the error shrinks
         assert abs(float(lengths(res)[-1] / true[-1]) - 1) < abs(float(lengths(res)[0] / true[0]) - 1)
-    if road:
-        heights = torch.tensor([r.diagnostics.scale_height for r in res], dtype=torch.float64)
-        assert torch.allclose(heights / true, torch.ones_like(true), atol=1e-6)  # exact flow: exact road plane
+    heights = torch.tensor([r.diagnostics.scale_height for r in res], dtype=torch.float64)
+    if road == TRIANGULATED:  # exact flow: the triangulated road plane is exact
+        assert torch.allclose(heights / true, torch.ones_like(true), atol=1e-6)
+    else:  # the network's road plane is exact (1.3x the camera height); the bias it observes goes through the filter
+        fits = torch.tensor([r.diagnostics.camera_height_fit for r in res], dtype=torch.float64)
+        assert torch.allclose(fits, torch.full_like(fits, 1.3 * CAMERA_HEIGHT), rtol=1e-6)
+        assert ((heights / true - 1).abs() < 0.01).all(), heights / true
 
 
 def test_road_plane_fit_ignores_kerbs_clutter_and_walls():
@@ -222,7 +227,7 @@ def test_gate_rejects_a_planted_absurd_pnp_result(monkeypatch):
     assert off[1].diagnostics.tracker == "PnP" and abs(float(off[1].T_prev_cur[:3, 3].norm()) - 42.0) < 1e-6
 
 
-@pytest.mark.parametrize("road", [TRIANGULATED, {}], ids=["triangulated", "depth"])
+@pytest.mark.parametrize("road", [TRIANGULATED, NETWORK_DEPTH], ids=["triangulated", "depth"])
 def test_batched_equals_streaming_with_camera_height_and_filter(straight, road):
     w, ff, fb, d, rel = straight
     noisy = d * torch.tensor([1.0, 1.1, 0.9, 1.05, 0.95, 1.1])[:, None, None, None]
