@@ -28,7 +28,7 @@ from dfvo.sources import (
     load_weights,
     resolve_source,
 )
-from dfvo.synthetic import SyntheticWorld
+from dfvo.synthetic import CAMERA_HEIGHT, SyntheticWorld
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 96, 320  # low resolution keeps each run a few seconds
@@ -90,6 +90,12 @@ def test_oracle_synthetic_reproduces_true_poses_and_writes_outputs(tmp_path: Pat
     assert {"flow", "depth", "tracker"} <= set(summary["timing_ms_per_frame"])
     assert summary["choices"]["tracker"] == "hybrid" and summary["sources"]["flow"] == "oracle"
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+    # no camera height is given for synthetic data: it is estimated from the depth's road plane (exact here) and
+    # reported; the frames before the estimate flag its absence
+    height = summary["camera_height"]
+    assert height["source"] == "estimated" and height["value_m"] == pytest.approx(CAMERA_HEIGHT, rel=1e-3), height
+    assert rows[1]["camera_height_unavailable"] and not rows[-1]["camera_height_unavailable"]
+    assert float(rows[-1]["camera_height"]) == pytest.approx(CAMERA_HEIGHT, rel=1e-3)
 
 
 def test_interrupted_run_leaves_a_valid_prefix(tmp_path: Path) -> None:

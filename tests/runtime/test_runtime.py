@@ -53,6 +53,7 @@ def pair() -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @needs_checkpoints
+@pytest.mark.slow  # ~100 s at 640x192 on 2 cores; the fast cover: the flow export at 96x320 (test_export_command_...)
 @pytest.mark.parametrize("kind", ["onnxruntime", "openvino"])
 def test_runtime_flow_agrees_with_eager(kind: str, cache: Path, pair: tuple[torch.Tensor, torch.Tensor]) -> None:
     torch.set_num_threads(1)

@@ -11,7 +11,6 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from dfvo.synthetic import CAMERA_HEIGHT, SyntheticWorld
 from dfvo.tracking import TrackerConfig, VisualOdometry
-from dfvo.tracking.camera_height import CameraHeight
 from dfvo.tracking.config import CameraHeightConfig, RoadPlaneConfig, ScaleConfig, ScaleFilterConfig
 from dfvo.tracking.model_selection import homography_to_essential_residual, rotation_compensated_parallax
 from dfvo.tracking.scale_filter import ScaleFilter
@@ -128,29 +127,6 @@ def test_filter_restarts_when_its_prediction_runs_away():
 
 
 # ------------------------------------------------------------------------------------------ camera height
-def test_camera_height_is_the_median_of_the_road_heights_once_they_agree():
-    """Road heights 1.65 m with 2 % noise and two outliers: no height before ``min_frames``; then the median; a spread
-    above ``max_spread`` or a value outside ``height_range`` gives none, with the reason."""
-    cfg = CameraHeightConfig()
-    h = CameraHeight(None, cfg)
-    g = torch.Generator().manual_seed(1)
-    values = (1.65 * (1 + 0.02 * torch.randn(20, generator=g, dtype=D))).tolist() + [0.4, 9.0]
-    for v in values[:cfg.min_frames - 1]:
-        h.observe(v)
-    assert h.value is None and h.unavailable_reason
-    for v in values[cfg.min_frames - 1:]:
-        h.observe(v)
-    assert h.source == "estimated"
-    assert abs(h.value - sorted(values)[len(values) // 2 - 1: len(values) // 2 + 1][0]) < 0.03
-    assert abs(h.value - 1.65) < 0.02
-    scattered = CameraHeight(None, cfg)
-    for v in (1.0, 2.0, 1.5, 0.8, 2.6):
-        scattered.observe(v)
-    assert scattered.value is None and "varies by" in scattered.unavailable_reason
-    given = CameraHeight(1.2, cfg)
-    assert given.value == 1.2 and given.source == "given"
-
-
 @pytest.fixture(scope="module")
 def straight():
     """Seven pairs of straight driving with exact flow and depth."""

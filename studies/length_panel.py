@@ -1,0 +1,224 @@
+"""The accuracy panel of issue 24: every configuration on every case, end to end through ``infer.py``.
+
+Cases (``--cases``): KITTI odometry 06 at ``data.step`` 1, 2, 3 (1.2, 2.4, 3.6 m a frame; its 51 frames) and
+07 at 1, 2 (its 160 frames, 0.57 m a frame, a 96 deg turn); held-out synthetic worlds (seed 1000, never trained on)
+of each scenario (drive, city, straight, highway; ``--synthetic-frames`` frames each); and, when ``--video`` names an
+H.264 file of KITTI 07's frames (``--make-video`` writes one with PyAV), 07 read as a user's own video with the four
+intrinsics only (no camera height: it is estimated).
+
+Configurations (``--configs``, each a name from :data:`CONFIGS` or ``NAME:override,override``): the defaults, the
+paper (``experiment=paper``), the classical flow (``flow=dis``) and each of issue 24's additions switched off alone.
+
+Per run: RPE (m, deg) and ATE (m) as run (6-DoF alignment) and with every relative translation rescaled to its true
+length (direction and rotation only: :func:`dfvo.eval.error_decomposition.scale_free`), the predicted/true length
+ratio (mean, std), the trackers used and the FPS. Every run's folder stays under ``--out``; the JSON
+(``OUT/panel.json``) is rewritten after each run, so an interrupted panel keeps what it measured; the markdown table
+(``OUT/panel.md``) has one row per configuration and the geometric mean over the cases.
+
+    python studies/length_panel.py --out runs/length_panel                      # ~25 min on 2 cores
+    python studies/length_panel.py --out runs/length_panel --configs default,paper --cases kitti07
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dfvo.eval import evaluate_trajectory
+from dfvo.eval.error_decomposition import scale_free
+from dfvo.io.trajectory import read_kitti_poses
+
+ROOT = Path(__file__).resolve().parent.parent
+KITTI_07_INTRINSICS = {"fx": 707.0912, "fy": 707.0912, "cx": 601.8873, "cy": 183.1104}  # calib.txt P0 of 07
+
+CONFIGS: dict[str, list[str]] = {
+    "default": [],
+    "paper": ["experiment=paper"],
+    "flow=dis": ["flow=dis"],
+    "no road homography": ["tracker.road_alignment.enabled=false"],
+    "no parallax rule (GRIC alone)": ["tracker.model_selection.min_parallax_px=null"],
+    "PnP length unfiltered": ["tracker.scale.fuse_pnp=false"],
+    "filter trusts its first observation": ["tracker.scale_filter.warmup_frames=0"],
+    "network road plane as the height observation": ["tracker.road_plane.points=depth",
+                                                     "tracker.road_alignment.enabled=false"],
+}
+SCENARIOS = ("drive", "city", "straight", "highway")
+
+
+def cases(args: argparse.Namespace) -> dict[str, list[str]]:
+    """Case name -> infer.py overrides."""
+    kitti = f"data.root={args.kitti_root}"
+    out = {"kitti06": ["data=kitti_odom", kitti, "seq=06"],
+           "kitti06_step2": ["data=kitti_odom", kitti, "seq=06", "data.step=2"],
+           "kitti06_step3": ["data=kitti_odom", kitti, "seq=06", "data.step=3"],
+           "kitti07": ["data=kitti_odom", kitti, "seq=07"],
+           "kitti07_step2": ["data=kitti_odom", kitti, "seq=07", "data.step=2"]}
+    from dfvo.synthetic import held_out_worlds
+    for world in held_out_worlds(SCENARIOS, 1):
+        speed = "null" if world.speed is None else (f"{world.speed}" if isinstance(world.speed, float)
+                                                     else f"[{world.speed[0]},{world.speed[1]}]")
+        out[f"synthetic_{world.scenario}"] = ["data=synthetic", f"seq={world.scenario}", f"data.seed={world.seed}",
+                                              f"data.num_frames={args.synthetic_frames}", f"data.speed={speed}"]
+    if args.video:
+        intr = [f"data.{k}={v}" for k, v in KITTI_07_INTRINSICS.items()]
+        out["kitti07_video"] = ["data=video", f"data.path={args.video}", *intr,
+                                f"data.gt={Path(args.kitti_root) / 'poses' / '07.txt'}", "data.gt_format=kitti"]
+    return out
+
+
+def make_video(kitti_root: str, path: str) -> None:
+    """KITTI 07's left images as an H.264 file (PyAV, crf 18, 10 fps): what a user's dash camera would record."""
+    import av
+    from PIL import Image
+
+    frames = sorted((Path(kitti_root) / "sequences" / "07" / "image_0").glob("*.png"))
+    if not frames:
+        raise SystemExit(f"--make-video: no images under {Path(kitti_root) / 'sequences' / '07' / 'image_0'}")
+    first = np.asarray(Image.open(frames[0]).convert("RGB"))
+    h, w = first.shape[0] // 2 * 2, first.shape[1] // 2 * 2  # yuv420p needs even sizes
+    with av.open(path, "w") as container:
+        stream = container.add_stream("libx264", rate=10, options={"crf": "18"})
+        stream.width, stream.height, stream.pix_fmt = w, h, "yuv420p"
+        for f in frames:
+            img = np.ascontiguousarray(np.asarray(Image.open(f).convert("RGB"))[:h, :w])
+            for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+
+
+def ground_truth(overrides: list[str]) -> np.ndarray:
+    """(N,4,4) the poses of the frames ``infer.py`` runs with these overrides (the loader's own selection)."""
+    from hydra import compose, initialize_config_module
+
+    from dfvo.inference.config import register_configs, typed
+    from dfvo.inference.frames import build_sequence
+
+    register_configs()
+    with initialize_config_module("dfvo.conf.infer", version_base="1.3"):
+        cfg = typed(compose("infer", overrides=overrides))
+    seq = build_sequence(cfg.data, cfg.seq, cfg.img_res)
+    if seq.poses is None:
+        raise SystemExit(f"no ground truth for {' '.join(overrides)}")
+    return np.asarray(seq.poses, dtype=np.float64)
+
+
+def metrics(gt: np.ndarray, pred: np.ndarray) -> dict[str, Any]:
+    true_lengths, _, direction, ratio = scale_free(gt, pred)
+
+    def m(traj: np.ndarray) -> dict[str, float]:
+        r = evaluate_trajectory(gt, traj, align="6dof")
+        return {"rpe_m": round(r["rpe_m"], 5), "rpe_deg": round(r["rpe_deg"], 5), "ate_m": round(r["ate_m"], 4)}
+
+    return {"as_run": m(pred), "true_lengths": m(true_lengths),
+            "length_ratio": {"mean": round(float(ratio.mean()), 4), "std": round(float(ratio.std()), 4)},
+            "direction_error_deg_median": round(float(np.median(direction)), 4)}
+
+
+def run(name: str, case: list[str], config: list[str], out: Path, threads: int) -> dict[str, Any]:
+    folder = out / name
+    cmd = [sys.executable, str(ROOT / "infer.py"), *case, *config, f"out_dir={folder}", "progress=false",
+           f"num_threads={threads}"]
+    started = time.time()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    record: dict[str, Any] = {"command": " ".join(["python infer.py", *case, *config]),
+                              "wall_s": round(time.time() - started, 1)}
+    if proc.returncode != 0:
+        record["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        return record
+    summary = json.loads((folder / "summary.json").read_text())
+    pred = read_kitti_poses(summary["pose_file"])
+    gt = ground_truth(case)
+    if len(gt) != len(pred):
+        record["error"] = f"{len(pred)} poses written for {len(gt)} ground-truth frames"
+        return record
+    record.update(metrics(gt, pred))
+    record["fps"] = round(summary["fps"], 2)
+    record["trackers"] = summary["fallback"]["trackers"]
+    record["camera_height"] = summary.get("camera_height")
+    return record
+
+
+def table(result: dict[str, Any], case_names: list[str]) -> str:
+    """Rows: configurations; cells: RPE m as run / with true lengths; last column: geometric means."""
+    head = ["configuration", *case_names, "geomean as run / true-length"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for cname, runs in result["runs"].items():
+        cells, logs, logs_t = [], [], []
+        for case in case_names:
+            r = runs.get(case)
+            if r is None or "error" in r:
+                cells.append("—" if r is None else "error")
+                continue
+            a, t = r["as_run"]["rpe_m"], r["true_lengths"]["rpe_m"]
+            cells.append(f"{a:.4f} / {t:.4f}")
+            logs.append(math.log(a))
+            logs_t.append(math.log(t))
+        gm = (f"{math.exp(sum(logs) / len(logs)):.4f} / {math.exp(sum(logs_t) / len(logs_t)):.4f}"
+              if logs else "—")
+        lines.append("| " + " | ".join([cname, *cells, gm]) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", default="runs/length_panel")
+    p.add_argument("--kitti-root", default=str(ROOT.parent / "shared" / "data" / "kitti_odom"))
+    p.add_argument("--configs", default=",".join(CONFIGS), help="names of CONFIGS or NAME:override,override")
+    p.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
+    p.add_argument("--synthetic-frames", type=int, default=60)
+    p.add_argument("--video", default=None, help="H.264 file of KITTI 07's frames (case kitti07_video)")
+    p.add_argument("--make-video", action="store_true", help="write --video from the KITTI 07 images first")
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.make_video:
+        if not args.video:
+            raise SystemExit("--make-video: name the file with --video PATH")
+        make_video(args.kitti_root, args.video)
+    all_cases = cases(args)
+    names = list(all_cases) if args.cases is None else args.cases.split(",")
+    unknown = [n for n in names if n not in all_cases]
+    if unknown:
+        raise SystemExit(f"--cases: unknown {unknown}; expected some of {list(all_cases)}")
+    configs: dict[str, list[str]] = {}
+    for spec in args.configs.split(";" if ";" in args.configs else ","):
+        name, sep, overrides = spec.partition(":")
+        if sep:
+            configs[name] = [o for o in overrides.split(",") if o]
+        elif name in CONFIGS:
+            configs[name] = CONFIGS[name]
+        else:
+            raise SystemExit(f"--configs: unknown {name!r}; expected one of {list(CONFIGS)} or NAME:override,...")
+    path = out / "panel.json"
+    result: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {"runs": {}}
+    result.update({"machine": f"{platform.machine()}, {os.cpu_count()} cores, {args.threads} torch threads",
+                   "date": time.strftime("%Y-%m-%d"), "command": " ".join(["python", *sys.argv]),
+                   "configs": {**result.get("configs", {}), **configs}})
+    for cname, overrides in configs.items():
+        for case in names:
+            slug = f"{cname}/{case}".replace(" ", "_").replace("(", "").replace(")", "").replace("=", "-")
+            record = run(slug, all_cases[case], overrides, out, args.threads)
+            result["runs"].setdefault(cname, {})[case] = record
+            path.write_text(json.dumps(result, indent=1))
+            shown = record.get("error") or f"{record['as_run']['rpe_m']:.4f} m (true-length " \
+                                            f"{record['true_lengths']['rpe_m']:.4f})"
+            print(f"{cname:45s} {case:20s} {shown}", flush=True)
+    text = table(result, names)
+    (out / "panel.md").write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
