@@ -91,25 +91,27 @@ def _cost_profiles(grey_prev: torch.Tensor, grey_cur: torch.Tensor, K: torch.Ten
 
     ref = sample(grey_prev, pixels[None])[0].to(torch.float64)  # (N,)
     heights = log_heights.exp()
-    p = (rays @ Rd.T)[None] + td[None, None] * ((rays @ n)[None] / heights[:, None])[..., None]  # (S,N,3)
-    uvw = p @ Kd.T
+    # x_j ~ K (R r + t (n.r) / h): the rotated rays and K t in float64, the (S,N,3) samples in float32 (1e-4 px)
+    rotated = (rays @ (Kd @ Rd).T).to(torch.float32)  # (N,3)
+    along = ((rays @ n)[None] / heights[:, None]).to(torch.float32)  # (S,N)
+    uvw = rotated[None] + along[..., None] * (Kd @ td).to(torch.float32)  # (S,N,3)
     uv = uvw[..., :2] / uvw[..., 2:].clamp_min(1e-12)
     moved = sample(grey_cur, uv).to(torch.float64)  # (S,N)
     inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= H - 1)
               & (uvw[..., 2] > 0)).to(torch.float64)
-    out = torch.full((6, heights.shape[0]), float("nan"), dtype=torch.float64)
-    for b in range(6):
-        m = blocks == b
-        if int(m.sum()) < 50:
-            continue
-        w = inside[:, m]
-        cnt = w.sum(1)
-        a, s = ref[m][None], moved[:, m]
-        a_c = (a - (a * w).sum(1, keepdim=True) / cnt.clamp_min(1)[:, None]) * w
-        s_c = (s - (s * w).sum(1, keepdim=True) / cnt.clamp_min(1)[:, None]) * w
-        zncc = (a_c * s_c).sum(1) / (a_c.norm(dim=1) * s_c.norm(dim=1)).clamp_min(1e-12)
-        out[b] = torch.where(cnt >= 0.5 * int(m.sum()), 1.0 - zncc, torch.full_like(zncc, float("nan")))
-    return out
+    # per block, over the pixels inside image j: ZNCC = cov(a, s) / sqrt(var(a) var(s)), from the block sums of w,
+    # w a, w a^2, w s, w s^2, w a s (one matrix product with the block indicator instead of a masked copy per block)
+    onehot = F.one_hot(blocks, 6).to(torch.float64)  # (N,6)
+    size = onehot.sum(0)  # (6,)
+    sums = torch.stack([inside, inside * ref, inside * ref * ref, inside * moved, inside * moved * moved,
+                        inside * ref * moved]) @ onehot  # (6 sums, S, 6 blocks)
+    cnt, sa, saa, ss, sss, sas = sums.unbind(0)
+    den = cnt.clamp_min(1.0)
+    cov, var_a, var_s = sas - sa * ss / den, saa - sa * sa / den, sss - ss * ss / den
+    textured = (var_a > 1e-8 * den) & (var_s > 1e-8 * den)  # a flat patch (no texture, or rounding) matches nothing
+    zncc = torch.where(textured, cov / (var_a * var_s).clamp_min(1e-30).sqrt(), torch.zeros_like(cov))
+    valid = (size >= 50)[None] & (cnt >= 0.5 * size[None])
+    return torch.where(valid, 1.0 - zncc, torch.full_like(zncc, float("nan"))).T  # (6,S)
 
 
 def _parabola_min(cost: torch.Tensor, log_heights: torch.Tensor) -> tuple[float, float, bool]:
