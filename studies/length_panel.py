@@ -174,7 +174,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", default="runs/length_panel")
     p.add_argument("--kitti-root", default=str(ROOT.parent / "shared" / "data" / "kitti_odom"))
-    p.add_argument("--configs", default=",".join(CONFIGS), help="names of CONFIGS or NAME:override,override")
+    p.add_argument("--configs", default=",".join(CONFIGS),
+                   help="names of CONFIGS separated by ',', or entries NAME:override,override separated by ';'")
     p.add_argument("--cases", default=None, help="comma-separated case names (default: all)")
     p.add_argument("--synthetic-frames", type=int, default=60)
     p.add_argument("--video", default=None, help="H.264 file of KITTI 07's frames (case kitti07_video)")
@@ -193,7 +194,8 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"--cases: unknown {unknown}; expected some of {list(all_cases)}")
     configs: dict[str, list[str]] = {}
-    for spec in args.configs.split(";" if ";" in args.configs else ","):
+    # NAME:override,override entries are separated by ";" (a single one may end with ";"); plain names by ","
+    for spec in filter(None, args.configs.split(";" if ";" in args.configs else ",")):
         name, sep, overrides = spec.partition(":")
         if sep:
             configs[name] = [o for o in overrides.split(",") if o]
