@@ -53,7 +53,7 @@ def pair() -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @needs_checkpoints
-@pytest.mark.slow  # ~100 s at 640x192 on 2 cores; the fast cover: the flow export at 96x320 (test_export_command_...)
+@pytest.mark.slow  # ~100 s on 2 cores (the flow network's export); the fast cover: the depth network's below
 @pytest.mark.parametrize("kind", ["onnxruntime", "openvino"])
 def test_runtime_flow_agrees_with_eager(kind: str, cache: Path, pair: tuple[torch.Tensor, torch.Tensor]) -> None:
     torch.set_num_threads(1)
@@ -192,6 +192,8 @@ def test_unwritable_cache_is_one_line(tmp_path: Path) -> None:
 
 
 @needs_checkpoints
+@pytest.mark.slow  # the flow network's export costs ~50 s on 2 cores; the export code's fast cover is the depth
+# network's (test_runtime_depth_agrees_with_eager, test_stale_export_is_detected_and_redone)
 def test_export_command_reuses_the_cache(cache: Path) -> None:
     """``python -m dfvo.sources.runtime flow``: the file the flow source uses, recording the shipped file's sha256."""
     proc = subprocess.run([sys.executable, "-m", "dfvo.sources.runtime", "flow", "--cache-dir", str(cache)],

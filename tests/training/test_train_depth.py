@@ -197,7 +197,8 @@ def _logged_steps(run_dir: Path, tag: str = "train/loss") -> list[int]:
     return [e.step for e in events.Scalars(tag)]
 
 
-@pytest.mark.parametrize("num_frames", [pytest.param(8, id="stop-mid-epoch"),
+@pytest.mark.parametrize("num_frames", [pytest.param(8, id="stop-mid-epoch", marks=pytest.mark.slow),
+                                        # mid-epoch resume: test_signal_mid_epoch_saves_and_resumes_exactly covers it
                                         # resuming at an epoch boundary: test_resume_is_exact is the fast cover
                                         pytest.param(6, id="stop-at-epoch-end", marks=pytest.mark.slow)])
 def test_resume_after_max_steps_is_exact(tmp_path: Path, num_frames: int) -> None:
