@@ -123,8 +123,9 @@ class ScaleConfig:
             observations correct it; a frame whose scale observations fail keeps the prediction. false: per-frame
             scale (the paper). Default true; its effect is measured in docs/scale.md.
         fuse_pnp: a PnP frame's length (the depth network's scale) is one more observation of the scale fusion
-            (its bias estimate, the three-frame relative scale, the road) instead of the frame's length as it is;
-            false: PnP's own length (the paper).
+            (its bias estimate, the three-frame relative scale, the road) instead of the frame's length as it is.
+            Default false (PnP's own length, the paper's): on the accuracy panel it changes nothing on KITTI and is
+            worse on the synthetic worlds' PnP frames with the default flow network (docs/scale.md).
     """
 
     method: ScaleMethod = ScaleMethod.simple
@@ -142,7 +143,7 @@ class ScaleConfig:
     camera_height: float | None = None
     camera_height_from_data: bool = True
     temporal: bool = True
-    fuse_pnp: bool = True
+    fuse_pnp: bool = False
 
     def __post_init__(self) -> None:
         self.method = choice(ScaleMethod, self.method, "tracker.scale.method")
