@@ -36,6 +36,12 @@ sweep scale_temporal tracker.scale.temporal=false
 sweep scale_height tracker.scale.camera_height_from_data=false
 sweep scale_per_frame tracker.scale.temporal=false tracker.scale.camera_height_from_data=false
 sweep gates tracker.gate.enabled=false
+# issue 24's additions, each off (or on, for fuse_pnp) alone (docs/scale.md: the panel of every KITTI snippet)
+sweep road_alignment tracker.road_alignment.enabled=false
+sweep parallax_rule tracker.model_selection.min_parallax_px=null
+sweep fuse_pnp tracker.scale.fuse_pnp=true
+sweep filter_start tracker.scale_filter.warmup_frames=0
+sweep height_estimate tracker.camera_height.estimate=false
 sweep model_selection model_selection=flow
 sweep img_res img_res=full
 if [[ $ORACLE -eq 0 ]]; then                  # factors of the network flow
