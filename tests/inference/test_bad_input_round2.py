@@ -357,7 +357,7 @@ def test_quoted_path_with_spaces_and_umlauts_reaches_the_reader(infer_cli, tmp_p
     assert f"folder {folder} contains no images" in error_line(proc)
 
 
-@pytest.mark.parametrize("step", ["0", "-1"])
+@pytest.mark.parametrize("step", ["0", pytest.param("-1", marks=pytest.mark.slow)])  # one check: 0 is the fast cover
 def test_data_step_must_be_positive(infer_cli, tmp_path: Path, step: str) -> None:
     """``data.step=0`` / ``-1``: one line naming data.step and what is expected (not Python's "slice step cannot
     be zero", not the footage run backwards)."""

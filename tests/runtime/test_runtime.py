@@ -227,7 +227,9 @@ def _differences(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @needs_checkpoints
-@pytest.mark.parametrize("kind", [pytest.param("onnxruntime", marks=pytest.mark.slow), "openvino"])
+@pytest.mark.slow  # ~20 s; fast covers: the networks on each runtime (test_runtime_depth_agrees_with_eager) and the
+# runtime settings through infer.py's command line (test_missing_extra_on_the_command_line)
+@pytest.mark.parametrize("kind", ["onnxruntime", "openvino"])
 def test_infer_with_runtime_depth_equals_eager(kind: str, tmp_path: Path, cache: Path) -> None:
     """infer.py with the depth network on the runtime (true flow, so the depth is the only difference): the poses
     are eager PyTorch's up to float rounding, and summary.json says which runtime ran."""
