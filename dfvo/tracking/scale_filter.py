@@ -102,6 +102,17 @@ class ScaleFilter:
         self.observed_frames = 0
         self.reset()
 
+    @classmethod
+    def from_config(cls, cfg: ScaleFilterConfig, temporal: bool, height_log_std: float) -> ScaleFilter:
+        """The filter of ``tracker.scale_filter`` settings ``cfg``, the bias untracked until
+        :meth:`start_bias_estimate` (``height_log_std``: the road observations' noise,
+        ``tracker.road_plane.log_std``)."""
+        return cls(temporal=temporal, estimate_bias=False, cnn_log_std=cfg.cnn_log_std, height_log_std=height_log_std,
+                   motion_log_std=cfg.motion_log_std, temporal_log_std=cfg.temporal_log_std,
+                   relative_process_std=cfg.relative_process_std, bias_prior_log_std=cfg.bias_prior_log_std,
+                   bias_log_std=cfg.bias_log_std, gate_sigma=cfg.gate_sigma, min_length=cfg.min_length,
+                   max_rejections=cfg.max_rejections, warmup_frames=cfg.warmup_frames)
+
     def reset(self, bias_from: FilterState | None = None) -> None:
         """Forget the scale (the next frame starts from its own observations); the CNN bias estimate is kept, or
         taken from ``bias_from`` (e.g. the state before a frame whose result is not to be learnt from)."""
@@ -112,21 +123,16 @@ class ScaleFilter:
         self.rejected_frames = 0
         self.observed_frames = 0
 
-    def start_bias_estimate(self) -> None:
-        """From now on track the CNN bias ``b`` (a camera height has become available: the road observations make it
-        observable), starting from its prior; no-op when it is tracked already."""
+    def start_bias_estimate(self, prior: FilterState) -> FilterState:
+        """From now on track the CNN bias ``b`` (something other than the network measures the metric scale: the
+        road observations make it observable), starting from its prior; returns ``prior`` (this frame's, of
+        :meth:`prior`, formed while the bias was untracked) with that prior variance. No-op when it is tracked."""
         if self.estimate_bias:
-            return
+            return prior
         self.estimate_bias = True
         if self.state is not None:
             self.state = replace(self.state, pbb=self.state.pbb + self.bias_prior_var)
-
-    def prior_with_bias(self, prior: FilterState) -> FilterState:
-        """``prior`` (of :meth:`prior`) with the bias's prior variance added when it is untracked so far (its variance
-        zero: :meth:`start_bias_estimate` was called after the prior was formed)."""
-        if self.estimate_bias and prior.pbb == 0.0:
-            return replace(prior, pbb=self.bias_prior_var)
-        return prior
+        return replace(prior, pbb=prior.pbb + self.bias_prior_var)
 
     # ------------------------------------------------------------------------------------------ one frame
     def prior(self, temporal_scale: float | None = None, temporal_log_std: float | None = None) -> FilterState:

@@ -97,13 +97,7 @@ class ScaleFusion:
         self.cfg = cfg
         sc, sf = cfg.scale, cfg.scale_filter
         self.camera_height = CameraHeight(sc.camera_height, cfg.camera_height)
-        self.filter = ScaleFilter(temporal=sc.temporal, estimate_bias=False,
-                                  cnn_log_std=sf.cnn_log_std, height_log_std=cfg.road_plane.log_std,
-                                  motion_log_std=sf.motion_log_std, temporal_log_std=sf.temporal_log_std,
-                                  relative_process_std=sf.relative_process_std,
-                                  bias_prior_log_std=sf.bias_prior_log_std, bias_log_std=sf.bias_log_std,
-                                  gate_sigma=sf.gate_sigma, min_length=sf.min_length,
-                                  max_rejections=sf.max_rejections, warmup_frames=sf.warmup_frames)
+        self.filter = ScaleFilter.from_config(sf, temporal=sc.temporal, height_log_std=cfg.road_plane.log_std)
         self.reset()
 
     def reset(self) -> None:
@@ -185,8 +179,7 @@ class ScaleFusion:
         if road_bias is not None or height is not None or homography is not None:
             # an observation of the metric scale other than the network's own: its bias is observable from now on
             # (without one it is not, and a wrong frame's CNN scale would stay in it for the rest of the run)
-            self.filter.start_bias_estimate()
-            prior = self.filter.prior_with_bias(prior)
+            prior = self.filter.start_bias_estimate(prior)
         est = self.filter.estimate(prior, cnn_scale, height, road_bias,
                                    temporal_used=temporal_scale is not None and self.filter.state.known,
                                    homography=homography, homography_log_std=ra.log_std)

@@ -83,12 +83,7 @@ def test_homography_residual_ratio_tells_a_planar_scene_from_a_deep_one():
 
 # ------------------------------------------------------------------------------------------ the scale filter
 def make_filter(**kw) -> ScaleFilter:
-    c = ScaleFilterConfig(**kw)
-    return ScaleFilter(temporal=True, estimate_bias=False, cnn_log_std=c.cnn_log_std, height_log_std=0.03,
-                       motion_log_std=c.motion_log_std, temporal_log_std=c.temporal_log_std,
-                       relative_process_std=c.relative_process_std, bias_prior_log_std=c.bias_prior_log_std,
-                       bias_log_std=c.bias_log_std, gate_sigma=c.gate_sigma, min_length=c.min_length,
-                       max_rejections=c.max_rejections, warmup_frames=c.warmup_frames)
+    return ScaleFilter.from_config(ScaleFilterConfig(**kw), temporal=True, height_log_std=0.03)
 
 
 def run_filter(f: ScaleFilter, cnn: list[float], temporal: list[float | None] | None = None) -> list[float]:
@@ -128,16 +123,9 @@ def test_filter_restarts_when_its_prediction_runs_away():
 
 # ------------------------------------------------------------------------------------------ camera height
 @pytest.fixture(scope="module")
-def straight():
+def straight(straight_pairs):
     """Seven pairs of straight driving with exact flow and depth."""
-    w = SyntheticWorld(seed=0, num_frames=8, scenario="straight")
-    frames = [w.render(i, right=False) for i in range(7)]
-    ff = torch.stack([f["flow_fwd"] for f in frames])
-    fb = torch.stack([f["flow_bwd"] for f in frames])
-    d = torch.stack([f["depth"] for f in frames])
-    P = w.poses()
-    rel = torch.linalg.inv(P[:-1]) @ P[1:]
-    return w, ff, fb, d, rel
+    return straight_pairs(8)
 
 
 def test_estimated_camera_height_is_the_networks_road_height(straight):

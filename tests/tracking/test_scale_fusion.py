@@ -22,16 +22,9 @@ NETWORK_DEPTH = {"points": "depth"}
 
 
 @pytest.fixture(scope="module")
-def straight():
+def straight(straight_pairs):
     """Six pairs of straight driving with exact flow and depth (the E-tracker takes every pair)."""
-    w = SyntheticWorld(seed=0, num_frames=7, scenario="straight")
-    frames = [w.render(i, right=False) for i in range(6)]
-    ff = torch.stack([f["flow_fwd"] for f in frames])
-    fb = torch.stack([f["flow_bwd"] for f in frames])
-    d = torch.stack([f["depth"] for f in frames])
-    P = w.poses()
-    rel = torch.linalg.inv(P[:-1]) @ P[1:]  # T_prev_cur
-    return w, ff, fb, d, rel
+    return straight_pairs(7)
 
 
 def lengths(results) -> torch.Tensor:

@@ -1,0 +1,33 @@
+"""Shared fixtures of the tracking tests."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import cache
+
+import pytest
+import torch
+
+from dfvo.synthetic import SyntheticWorld
+
+StraightPairs = tuple[SyntheticWorld, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+@cache
+def _straight_pairs(num_frames: int) -> StraightPairs:
+    w = SyntheticWorld(seed=0, num_frames=num_frames, scenario="straight")
+    frames = [w.render(i, right=False) for i in range(num_frames - 1)]
+    ff = torch.stack([f["flow_fwd"] for f in frames])
+    fb = torch.stack([f["flow_bwd"] for f in frames])
+    d = torch.stack([f["depth"] for f in frames])
+    P = w.poses()
+    rel = torch.linalg.inv(P[:-1]) @ P[1:]  # T_prev_cur
+    return w, ff, fb, d, rel
+
+
+@pytest.fixture(scope="session")
+def straight_pairs() -> Callable[[int], StraightPairs]:
+    """``straight_pairs(n)``: the straight synthetic world of seed 0 with ``n`` frames and its first ``n - 1``
+    rendered with exact flow and depth: ``(world, flow_fwd (n-1,2,H,W), flow_bwd, depth (n-1,1,H,W), T_prev_cur
+    (n-1,4,4))``, rendered once per ``n`` (the E-tracker takes every pair)."""
+    return _straight_pairs
