@@ -4,7 +4,6 @@ in one line, and a light ``import dfvo``."""
 from __future__ import annotations
 
 import csv
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -40,7 +39,7 @@ def world() -> SyntheticWorld:
 
 
 @needs_checkpoints
-def test_poses_equal_infer_py_on_the_same_frames(world: SyntheticWorld, tmp_path: Path) -> None:
+def test_poses_equal_infer_py_on_the_same_frames(world: SyntheticWorld, tmp_path: Path, infer_cli) -> None:
     """Frames written as PNGs, tracked by ``infer.py data=folder`` (batches of 4 pairs) and fed one by one to the API
     (same overrides, same intrinsics): the same trackers, poses equal to 1e-6 m / rad, and frames.csv's covariance
     equals the API's."""
@@ -57,10 +56,7 @@ def test_poses_equal_infer_py_on_the_same_frames(world: SyntheticWorld, tmp_path
     K = world.intrinsics().double().numpy()
     out = tmp_path / "out"
     intr = [f"data.fx={K[0, 0]:.17g}", f"data.fy={K[1, 1]:.17g}", f"data.cx={K[0, 2]:.17g}", f"data.cy={K[1, 2]:.17g}"]
-    proc = subprocess.run([sys.executable, str(REPO / "infer.py"), "data=folder", f"data.root={folder}", *intr,
-                           f"out_dir={out}", "progress=false", *SMALL], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"))
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    infer_cli("data=folder", f"data.root={folder}", *intr, f"out_dir={out}", "progress=false", *SMALL)
     cli = read_kitti(out / "frames.txt")
     rows = list(csv.DictReader((out / "frames.csv").open()))
 

@@ -17,10 +17,15 @@ from dfvo.evaluate import parse_args
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
-    """``python -m dfvo.evaluate ARGS`` as a user runs it (exit status, stderr, the files it leaves)."""
-    return subprocess.run([sys.executable, "-m", "dfvo.evaluate", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=120)
+@pytest.fixture
+def eval_cli(tool_cli):
+    """``python -m dfvo.evaluate ARGS`` as a user runs it, from the folder ``cwd`` (exit status, stderr, the files it
+    leaves): the ``tool_cli`` runner of tests/conftest.py (the module's ``main`` in this process)."""
+
+    def run(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess:
+        return tool_cli(cwd, "dfvo/evaluate.py")(*args, check=False)
+
+    return run
 
 
 def evaluate_in_process(*args: str) -> dict:
@@ -143,11 +148,11 @@ def test_integer_sequence_ids_get_two_digits(folders, tmp_path: Path, capsys: py
 
 
 
-def test_cli_single_files_write_nothing_else_in_the_working_directory(folders, tmp_path: Path) -> None:
+def test_cli_single_files_write_nothing_else_in_the_working_directory(folders, tmp_path: Path, eval_cli) -> None:
     gt_dir, pred_dir = folders
     work = tmp_path / "work"
     work.mkdir()
-    proc = _cli(f"gt={gt_dir / '09.txt'}", f"pred={pred_dir / '09.txt'}", "align=none", "out=m.json", cwd=work)
+    proc = eval_cli(f"gt={gt_dir / '09.txt'}", f"pred={pred_dir / '09.txt'}", "align=none", "out=m.json", cwd=work)
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in work.iterdir()) == ["m.json"]  # no outputs/, .hydra/ or *.log
     data = json.loads((work / "m.json").read_text())
@@ -155,14 +160,14 @@ def test_cli_single_files_write_nothing_else_in_the_working_directory(folders, t
     direct = evaluate_trajectory(_line(250, 1.0), _pred09(), "none")
     assert data["sequences"]["09"]["t_err_pct"] == pytest.approx(direct["t_err_pct"], rel=1e-6)
     assert data["sequences"]["09"]["association"]["method"] == "order"
-    bad = _cli(f"gt={gt_dir / '09.txt'}", f"pred={pred_dir / '09.txt'}", "bogus=1", cwd=work)
+    bad = eval_cli(f"gt={gt_dir / '09.txt'}", f"pred={pred_dir / '09.txt'}", "bogus=1", cwd=work)
     assert bad.returncode != 0 and "bogus" in bad.stderr
-    both = _cli(f"gt={gt_dir / '09.txt'}", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}", cwd=work)
+    both = eval_cli(f"gt={gt_dir / '09.txt'}", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}", cwd=work)
     assert both.returncode == 2 and both.stderr.startswith("error: both gt=") and len(both.stderr.splitlines()) == 1
     assert sorted(p.name for p in work.iterdir()) == ["m.json"]
 
 
-def test_cli_prefix_and_timestamped_formats(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_cli_prefix_and_timestamped_formats(tmp_path: Path, capsys: pytest.CaptureFixture, eval_cli) -> None:
     """A shorter KITTI prediction needs allow_prefix=true and the table says so; a TUM prediction is matched by
     timestamp against a EuRoC ground truth given as its dataset folder (<seq>/mav0/...)."""
     from dfvo.io.trajectory import write_euroc_poses, write_tum_poses
@@ -170,7 +175,7 @@ def test_cli_prefix_and_timestamped_formats(tmp_path: Path, capsys: pytest.Captu
     gt, pred = _line(250, 1.0), _pred09()
     write_kitti_poses(tmp_path / "gt" / "09.txt", gt)
     write_kitti_poses(tmp_path / "pred" / "09.txt", pred[:120])
-    refused = _cli(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}")
+    refused = eval_cli(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}")
     assert refused.returncode == 2 and "allow_prefix=true" in refused.stderr
     evaluate_in_process(f"gt_dir={tmp_path / 'gt'}", f"pred_dir={tmp_path / 'pred'}", "allow_prefix=true",
                         "align=none")
@@ -221,10 +226,10 @@ def test_task_dispatch_writes_out(monkeypatch, tmp_path: Path) -> None:
             cli.run(compose(config_name="evaluate", overrides=["task=pose"]))
 
 
-def test_task_settings_that_do_not_compose_are_one_line() -> None:
+def test_task_settings_that_do_not_compose_are_one_line(eval_cli) -> None:
     """The typed flow/depth settings are checked when Hydra composes: a bad value or an unknown key ends, like other
     bad input, with one ``error:`` line naming the key and exit status 2."""
-    bad = _cli("task=flow", "gt_dir=G", "flow.layout=kitti2020", "depth.network.bogus=1")
+    bad = eval_cli("task=flow", "gt_dir=G", "flow.layout=kitti2020", "depth.network.bogus=1")
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
     assert bad.stderr.startswith("error: ") and "flow.layout=kitti2020" in bad.stderr
     assert "expected one of [kitti2015, kitti2012]" in bad.stderr

@@ -1,11 +1,8 @@
-"""Fixtures of the inference tests: ``infer.py`` as a user runs it (in a folder of its own, so stray outputs show),
-and frame folders made from the synthetic world."""
+"""Fixtures of the inference tests: frame folders made from the synthetic world (``infer.py`` as a user runs it is
+``infer_cli`` of tests/conftest.py)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from types import SimpleNamespace
@@ -15,45 +12,6 @@ import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-class InferCli:
-    """Runs ``python REPO/infer.py ARGS`` with the working directory ``cwd`` (an empty folder of the test)."""
-
-    def __init__(self, cwd: Path) -> None:
-        self.cwd = cwd
-        cwd.mkdir(parents=True, exist_ok=True)
-
-    def args(self, *args: str) -> list[str]:
-        return [sys.executable, str(REPO / "infer.py"), *args]
-
-    def env(self) -> dict[str, str]:
-        env = dict(os.environ, OMP_NUM_THREADS="1")
-        env.pop("HYDRA_FULL_ERROR", None)
-        return env
-
-    def __call__(self, *args: str, check: bool = True, timeout: float = 300) -> subprocess.CompletedProcess:
-        proc = subprocess.run(self.args(*args), cwd=self.cwd, capture_output=True, text=True, timeout=timeout,
-                              env=self.env())
-        if check and proc.returncode != 0:
-            raise AssertionError(f"infer.py {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-        return proc
-
-    def popen(self, *args: str) -> subprocess.Popen:
-        return subprocess.Popen(self.args(*args), cwd=self.cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True, env=self.env())
-
-
-@pytest.fixture
-def infer_cli(tmp_path: Path) -> InferCli:
-    """``infer.py`` run from the empty folder ``tmp_path/cwd`` (assert ``not (cwd / "outputs").exists()``)."""
-    return InferCli(tmp_path / "cwd")
-
-
-@pytest.fixture(scope="module")
-def module_infer_cli(tmp_path_factory: pytest.TempPathFactory) -> InferCli:
-    """:func:`infer_cli` for a run shared by the tests of a module (its folder: ``module_infer_cli.cwd.parent``)."""
-    return InferCli(tmp_path_factory.mktemp("shared_run") / "cwd")
 
 
 def write_frames(folder: Path, images: Sequence[torch.Tensor]) -> Path:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -103,12 +102,15 @@ class LoopbackServer:
             self.sock.close()
 
 
-def run_infer(tmp_path: Path, *args: str, timeout: float = 600) -> tuple[subprocess.CompletedProcess, Path]:
+@pytest.fixture
+def stream_infer(infer_cli, tmp_path: Path):
+    """``infer.py data=stream ARGS`` (the ``infer_cli`` fixture) writing into ``tmp_path/out``: (process, out)."""
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, str(REPO / "infer.py"), "data=stream", f"out_dir={out}", "progress=false",
-                           *SMALL, *args], cwd=tmp_path, capture_output=True, text=True, timeout=timeout,
-                          env=dict(os.environ, OMP_NUM_THREADS="1"))
-    return proc, out
+
+    def run(*args: str, timeout: float = 600) -> tuple[subprocess.CompletedProcess, Path]:
+        return infer_cli("data=stream", f"out_dir={out}", "progress=false", *SMALL, *args, check=False), out
+
+    return run
 
 
 def check_outputs(out: Path, name: str = "stream") -> tuple[dict, list[dict], np.ndarray]:
@@ -126,11 +128,12 @@ def check_outputs(out: Path, name: str = "stream") -> tuple[dict, list[dict], np
 
 
 @needs_checkpoints
-def test_realtime_stream_keeps_the_latest_frame_and_counts_the_dropped(frames, intrinsics, tmp_path: Path) -> None:
+def test_realtime_stream_keeps_the_latest_frame_and_counts_the_dropped(frames, intrinsics,
+                                                                       stream_infer) -> None:
     """12 frames sent at once while the networks are still loading: real-time mode tracks the latest frame each time
     and counts every frame it skipped, per frame (dropped_before) and in summary.json."""
     server = LoopbackServer(frames)
-    proc, out = run_infer(tmp_path, f"data.url={server.url}", *intrinsics)
+    proc, out = stream_infer(f"data.url={server.url}", *intrinsics)
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary, rows, _ = check_outputs(out)
     stream = summary["stream"]
@@ -147,11 +150,12 @@ def test_realtime_stream_keeps_the_latest_frame_and_counts_the_dropped(frames, i
 
 @needs_checkpoints
 @pytest.mark.slow  # the reader's own test covers handing out every frame; this is the whole run
-def test_every_frame_when_not_realtime_and_the_poses_follow_the_drive(frames, intrinsics, tmp_path: Path) -> None:
+def test_every_frame_when_not_realtime_and_the_poses_follow_the_drive(frames, intrinsics,
+                                                                      stream_infer) -> None:
     """``data.realtime=false``: every frame of the stream is tracked (none dropped), and the trajectory moves forward
     like the world's (the frames went through H.264, so the comparison is loose)."""
     server = LoopbackServer(frames)
-    proc, out = run_infer(tmp_path, f"data.url={server.url}", "data.realtime=false", "pose_format=tum", *intrinsics)
+    proc, out = stream_infer(f"data.url={server.url}", "data.realtime=false", "pose_format=tum", *intrinsics)
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary, rows, poses = check_outputs(out)
     assert summary["stream"]["frames_tracked"] == len(frames) and summary["stream"]["frames_dropped"] == 0
@@ -164,12 +168,12 @@ def test_every_frame_when_not_realtime_and_the_poses_follow_the_drive(frames, in
 @needs_checkpoints
 @pytest.mark.parametrize("mode", ["cut", "stall"])
 def test_a_cut_or_stalled_stream_ends_with_one_line_and_complete_outputs(frames, intrinsics, tmp_path: Path,
-                                                                         mode: str) -> None:
+                                                                         mode: str, stream_infer) -> None:
     """The server stops after 5 frames: closing the connection (cut) or going silent (stall, longer than
     ``data.timeout_s``). The run ends with exit status 0, one line saying how the source ended, and outputs for
     the 5 frames."""
     server = LoopbackServer(frames, mode=mode, at=5, stall_s=30.0)
-    proc, out = run_infer(tmp_path, f"data.url={server.url}", "data.realtime=false", "data.timeout_s=3", *intrinsics)
+    proc, out = stream_infer(f"data.url={server.url}", "data.realtime=false", "data.timeout_s=3", *intrinsics)
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary, rows, _ = check_outputs(out)
     stream = summary["stream"]
@@ -182,7 +186,7 @@ def test_a_cut_or_stalled_stream_ends_with_one_line_and_complete_outputs(frames,
 
 @needs_checkpoints
 @pytest.mark.slow
-def test_a_growing_file_is_followed_until_it_stops_growing(frames, intrinsics, tmp_path: Path) -> None:
+def test_a_growing_file_is_followed_until_it_stops_growing(frames, intrinsics, tmp_path: Path, stream_infer) -> None:
     """A recording still being written (MPEG-TS appended frame by frame): every frame written is tracked, and the
     run ends ``data.timeout_s`` after the file stopped growing."""
     path = tmp_path / "recording.ts"
@@ -196,14 +200,14 @@ def test_a_growing_file_is_followed_until_it_stops_growing(frames, intrinsics, t
 
     writer = threading.Thread(target=write, daemon=True)
     writer.start()
-    proc, out = run_infer(tmp_path, f"data.url={path}", "data.realtime=false", "data.timeout_s=4", *intrinsics)
+    proc, out = stream_infer(f"data.url={path}", "data.realtime=false", "data.timeout_s=4", *intrinsics)
     writer.join()
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary, _, _ = check_outputs(out)
     assert summary["stream"]["frames_tracked"] == len(first)
 
 
-def test_a_source_that_cannot_be_opened_is_one_line(tmp_path: Path) -> None:
+def test_a_source_that_cannot_be_opened_is_one_line(tmp_path: Path, stream_infer) -> None:
     """Nobody listening: infer.py ends with one line on stderr naming data.url (before loading any network); a
     missing camera device and a missing url are one line too."""
     from dfvo.data.image_io import DatasetError
@@ -213,7 +217,7 @@ def test_a_source_that_cannot_be_opened_is_one_line(tmp_path: Path) -> None:
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
     sock.close()  # nobody listens there
-    proc, _ = run_infer(tmp_path, f"data.url=tcp://127.0.0.1:{port}", "data.fx=100", "data.fy=100", "data.cx=160",
+    proc, _ = stream_infer(f"data.url=tcp://127.0.0.1:{port}", "data.fx=100", "data.fy=100", "data.cx=160",
                         "data.cy=48", "data.timeout_s=2", timeout=120)
     assert proc.returncode == 1
     lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]

@@ -79,16 +79,13 @@ def test_quaternions_round_trip() -> None:
         assert np.allclose(back[:3, :3], R, atol=1e-12)
 
 
-def test_infer_writes_a_bag_with_one_odometry_per_frame(tmp_path: Path) -> None:
+def test_infer_writes_a_bag_with_one_odometry_per_frame(tmp_path: Path, infer_cli) -> None:
     """``infer.py output.rosbag=true`` on the synthetic world (true flow and depth): the bag has one Odometry, one TF
     and one ground-truth message per frame at the frames' times; the poses equal the pose file; the pose covariance
     is the propagation of frames.csv's step covariances and the twist covariance is the step's, in ROS order."""
     n = 8
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, str(REPO / "infer.py"), f"out_dir={out}", f"data.num_frames={n}",
-                           "output.rosbag=true", "output.ros_world_frame=map", *SMALL], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"))
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    infer_cli(f"out_dir={out}", f"data.num_frames={n}", "output.rosbag=true", "output.ros_world_frame=map", *SMALL)
     poses = read_kitti(out / "synthetic_drive_s0.txt")
     rows = list(csv.DictReader((out / "frames.csv").open()))
     bag = read_bag(out / "bag")

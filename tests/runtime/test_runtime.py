@@ -206,15 +206,11 @@ def test_export_command_reuses_the_cache(cache: Path) -> None:
     assert (meta["network"], meta["variant"], meta["input_size"]) == ("flow", "small", "96x320")
 
 
-def _run(tmp_path: Path, name: str, cache: Path, *overrides: str) -> tuple[np.ndarray, dict]:
+def _run(infer_cli, tmp_path: Path, name: str, cache: Path, *overrides: str) -> tuple[np.ndarray, dict]:
     """infer.py on 8 frames of the synthetic drive (1 thread): its poses (N,3,4) and summary."""
     out = tmp_path / name
-    proc = subprocess.run([sys.executable, str(REPO / "infer.py"), "data.num_frames=8", f"out_dir={out}",
-                           "progress=false", "num_threads=1", f"flow.runtime.cache_dir={cache}",
-                           f"depth.runtime.cache_dir={cache}", *overrides],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=600,
-                          env=dict(os.environ, OMP_NUM_THREADS="1"))
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    infer_cli("data.num_frames=8", f"out_dir={out}", "progress=false", "num_threads=1",
+              f"flow.runtime.cache_dir={cache}", f"depth.runtime.cache_dir={cache}", *overrides)
     summary = json.loads((out / "summary.json").read_text())
     return np.loadtxt(out / Path(summary["pose_file"]).name).reshape(-1, 3, 4), summary
 
@@ -230,11 +226,11 @@ def _differences(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.slow  # ~20 s; fast covers: the networks on each runtime (test_runtime_depth_agrees_with_eager) and the
 # runtime settings through infer.py's command line (test_missing_extra_on_the_command_line)
 @pytest.mark.parametrize("kind", ["onnxruntime", "openvino"])
-def test_infer_with_runtime_depth_equals_eager(kind: str, tmp_path: Path, cache: Path) -> None:
+def test_infer_with_runtime_depth_equals_eager(kind: str, tmp_path: Path, cache: Path, infer_cli) -> None:
     """infer.py with the depth network on the runtime (true flow, so the depth is the only difference): the poses
     are eager PyTorch's up to float rounding, and summary.json says which runtime ran."""
-    eager, s_eager = _run(tmp_path, "torch", cache, "flow=oracle", "depth=network", "runtime=torch")
-    fast, s_fast = _run(tmp_path, kind, cache, "flow=oracle", "depth=network", f"runtime={kind}")
+    eager, s_eager = _run(infer_cli, tmp_path, "torch", cache, "flow=oracle", "depth=network", "runtime=torch")
+    fast, s_fast = _run(infer_cli, tmp_path, kind, cache, "flow=oracle", "depth=network", f"runtime={kind}")
     assert (s_eager["sources"]["depth_runtime"], s_fast["sources"]["depth_runtime"]) == ("torch", kind)
     assert eager.shape == fast.shape == (8, 3, 4) and np.linalg.norm(eager[-1, :, 3]) > 1.0  # the camera moved
     dt, angle = _differences(eager, fast)
@@ -243,14 +239,14 @@ def test_infer_with_runtime_depth_equals_eager(kind: str, tmp_path: Path, cache:
 
 @needs_checkpoints
 @pytest.mark.slow
-def test_infer_with_runtime_flow_close_to_eager(tmp_path: Path, cache: Path) -> None:
+def test_infer_with_runtime_flow_close_to_eager(tmp_path: Path, cache: Path, infer_cli) -> None:
     """infer.py with the flow network on OpenVINO (true depth): close to eager, not equal. The tracker turns the
     runtimes' ~1e-5 px flow differences into centimetres here (its RANSAC draws see other inliers): on this run
     eager itself moves by up to 2.6 cm between 1 and 2 threads, and OpenVINO by up to 3.7 cm from eager, with RPE
     0.035 (eager) / 0.038 (eager, 2 threads) / 0.040 m (OpenVINO). Bounds: 10 cm a pose (10 % of a frame's motion)
     and 0.01 m of RPE."""
-    eager, s_eager = _run(tmp_path, "torch", cache, "flow=network", "depth=oracle", "runtime=torch")
-    fast, s_fast = _run(tmp_path, "openvino", cache, "flow=network", "depth=oracle", "runtime=openvino")
+    eager, s_eager = _run(infer_cli, tmp_path, "torch", cache, "flow=network", "depth=oracle", "runtime=torch")
+    fast, s_fast = _run(infer_cli, tmp_path, "openvino", cache, "flow=network", "depth=oracle", "runtime=openvino")
     assert s_fast["sources"]["flow_runtime"] == "openvino" and s_eager["sources"]["flow_runtime"] == "torch"
     dt, angle = _differences(eager, fast)
     assert dt.max() < 0.1 and angle.max() < 0.5, (dt, angle)

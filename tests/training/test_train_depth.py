@@ -98,13 +98,13 @@ def test_resume_is_exact(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Non
 
 
 @pytest.fixture(scope="module")
-def cli_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.CompletedProcess, Path]:
-    """One ``python train.py`` run (model=depth_mono, 1 step), as a user runs it; shared by the tests that need a
-    run or its checkpoint."""
+def cli_run(tmp_path_factory: pytest.TempPathFactory, module_train_cli) -> tuple[subprocess.CompletedProcess, Path]:
+    """One ``train.py`` run (model=depth_mono, 1 step; the ``train_cli`` runner: the script's ``main`` in this
+    process); shared by the tests that need a run or its checkpoint."""
     runs = tmp_path_factory.mktemp("runs")
-    cmd = [sys.executable, "train.py", "model=depth_mono", "data=synthetic", "trainer.max_steps=1",
-           "data.val_seeds=[]", "model.monitor=null", f"runs_dir={runs}", "name=cli", *TINY, *SYN]
-    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300), runs / "cli"
+    proc = module_train_cli("model=depth_mono", "data=synthetic", "trainer.max_steps=1", "data.val_seeds=[]",
+                            "model.monitor=null", f"runs_dir={runs}", "name=cli", *TINY, *SYN, check=False)
+    return proc, runs / "cli"
 
 
 def test_checkpoint_of_other_model_type_is_rejected(cli_run: tuple[subprocess.CompletedProcess, Path],

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import runpy
-import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -88,7 +87,7 @@ def test_smoke_run_validates_at_its_stop_and_exports_depth_weights(tmp_path: Pat
     assert not (tmp_path / "control" / "weights.safetensors").exists()
 
 
-def test_flow_weights_export_runs_in_infer(tmp_path: Path) -> None:
+def test_flow_weights_export_runs_in_infer(tmp_path: Path, infer_cli) -> None:
     """model=flow_supervised trainer=smoke writes weights.safetensors that `infer.py flow.checkpoint=...` runs."""
     out, _ = _run(_cfg(tmp_path, "model=flow_supervised", "model.variant=tiny", "trainer=smoke", "data.width=96",
                        "data.num_frames=6", "name=flow"))
@@ -100,10 +99,8 @@ def test_flow_weights_export_runs_in_infer(tmp_path: Path) -> None:
         ("flow", "tiny", "64", "96", "3")
     assert dtypes == {torch.float16}
     run = tmp_path / "infer"
-    cmd = [sys.executable, "infer.py", "flow=network", f"flow.checkpoint={out['weights']}", "depth=oracle",
-           "data.num_frames=4", f"out_dir={run}", "progress=false", "num_threads=1"]
-    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr[-2000:]
+    infer_cli("flow=network", f"flow.checkpoint={out['weights']}", "depth=oracle", "data.num_frames=4",
+              f"out_dir={run}", "progress=false", "num_threads=1")
     summary = json.loads((run / "summary.json").read_text())
     assert summary["sources"]["flow"] == "network" and summary["sources"]["flow_checkpoint"] == out["weights"]
     assert summary["frames_written"] == 4
