@@ -240,17 +240,19 @@ def test_infer_with_runtime_depth_equals_eager(kind: str, tmp_path: Path, cache:
 @needs_checkpoints
 @pytest.mark.slow
 def test_infer_with_runtime_flow_close_to_eager(tmp_path: Path, cache: Path, infer_cli) -> None:
-    """infer.py with the flow network on OpenVINO (true depth): close to eager, not equal. The tracker turns the
-    runtimes' ~1e-5 px flow differences into centimetres here (its RANSAC draws see other inliers): on this run
-    eager itself moves by up to 2.6 cm between 1 and 2 threads, and OpenVINO by up to 3.7 cm from eager, with RPE
-    0.035 (eager) / 0.038 (eager, 2 threads) / 0.040 m (OpenVINO). Bounds: 10 cm a pose (10 % of a frame's motion)
-    and 0.01 m of RPE."""
-    eager, s_eager = _run(infer_cli, tmp_path, "torch", cache, "flow=network", "depth=oracle", "runtime=torch")
-    fast, s_fast = _run(infer_cli, tmp_path, "openvino", cache, "flow=network", "depth=oracle", "runtime=openvino")
+    """infer.py with the flow network on OpenVINO (true depth) on the straight world: close to eager, not equal (the
+    runtimes' ~1e-5 px flow differences move the tracker's RANSAC draws). Measured 2026-12-02 (8 frames, 1 thread):
+    at most 9 mm and 0.004 deg apart a pose, RPE 0.0195 (eager) / 0.0184 m (OpenVINO). Not the drive world: there the
+    network's flow leaves the tracker at ~0.11 m RPE a frame and any perturbation (another thread count, another
+    runtime) moves the first step by 0.2-0.5 deg, so poses there measure the tracker's chaos, not the runtime.
+    Bounds: 3 cm and 0.05 deg a pose, 0.005 m of RPE."""
+    args = ("flow=network", "depth=oracle", "seq=straight")
+    eager, s_eager = _run(infer_cli, tmp_path, "torch", cache, *args, "runtime=torch")
+    fast, s_fast = _run(infer_cli, tmp_path, "openvino", cache, *args, "runtime=openvino")
     assert s_fast["sources"]["flow_runtime"] == "openvino" and s_eager["sources"]["flow_runtime"] == "torch"
     dt, angle = _differences(eager, fast)
-    assert dt.max() < 0.1 and angle.max() < 0.5, (dt, angle)
-    assert abs(s_fast["metrics"]["rpe_m"] - s_eager["metrics"]["rpe_m"]) < 0.01
+    assert dt.max() < 0.03 and angle.max() < 0.05, (dt, angle)
+    assert abs(s_fast["metrics"]["rpe_m"] - s_eager["metrics"]["rpe_m"]) < 0.005
 
 
 def test_bf16_only_where_the_cpu_and_runtime_have_it(monkeypatch: pytest.MonkeyPatch) -> None:
