@@ -21,6 +21,7 @@ run depth_scale python studies/depth_scale_consistency.py
 if python infer.py data=kitti_odom data.root="$KITTI" seq=06 out_dir="$OUT/kitti06" progress=false >"$OUT/kitti06.log" 2>&1
 then
     run error_decomposition python studies/error_decomposition.py --gt "$KITTI/poses/06.txt" --pred "$OUT/kitti06/06.txt"
+    run gt_constant_rate python studies/gt_constant_rate.py --gt "$KITTI/poses/06.txt" --run "$OUT/kitti06"
 else
     echo "infer.py on KITTI 06 failed: see $OUT/kitti06.log" >&2
 fi

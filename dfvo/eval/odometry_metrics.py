@@ -89,18 +89,26 @@ def kitti_segment_errors(gt: np.ndarray, pred: np.ndarray, lengths=SEGMENT_LENGT
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+def relative_pose_errors(gt: np.ndarray, pred: np.ndarray,
+                         valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pair ``(k, k+1)`` with both frames ``valid``: ``(pairs (P,) int k, translation errors (P,) m, rotation
+    errors (P,) deg)`` of ``inv(ΔG) ΔP`` (what :func:`relative_pose_error` averages)."""
+    gt, pred, valid = _check_pair(gt, pred, valid)
+    pair = np.flatnonzero(valid[:-1] & valid[1:])
+    d_gt = np.linalg.inv(gt[pair]) @ gt[pair + 1]
+    d_pred = np.linalg.inv(pred[pair]) @ pred[pair + 1]
+    err = np.linalg.inv(d_gt) @ d_pred
+    return pair, np.linalg.norm(err[:, :3, 3], axis=1), np.degrees(rotation_angle(err[:, :3, :3]))
+
+
 def relative_pose_error(gt: np.ndarray, pred: np.ndarray,
                         valid: np.ndarray | None = None) -> tuple[float | None, float | None]:
     """RPE: mean frame-to-frame ``(translation m, rotation deg)`` of ``inv(ΔG) ΔP`` over pairs ``(k, k+1)`` that
     are both ``valid``; ``(None, None)`` when there is no such pair."""
-    gt, pred, valid = _check_pair(gt, pred, valid)
-    pair = np.flatnonzero(valid[:-1] & valid[1:])
+    pair, t_err, r_err = relative_pose_errors(gt, pred, valid)
     if len(pair) == 0:
         return None, None
-    d_gt = np.linalg.inv(gt[pair]) @ gt[pair + 1]
-    d_pred = np.linalg.inv(pred[pair]) @ pred[pair + 1]
-    err = np.linalg.inv(d_gt) @ d_pred
-    return float(np.linalg.norm(err[:, :3, 3], axis=1).mean()), float(np.degrees(rotation_angle(err[:, :3, :3])).mean())
+    return float(t_err.mean()), float(r_err.mean())
 
 
 def absolute_trajectory_error(gt: np.ndarray, pred: np.ndarray, valid: np.ndarray | None = None) -> float:
