@@ -332,6 +332,9 @@ class ScaleFilterConfig:
         temporal_rotation_log_std: added (per degree of the pair's rotation) to the three-frame relative scale's
             standard error: it re-triangulates the previous pair's points with this pair's pose, and its error grows in
             turns, which the points' own spread does not show.
+        refine_points: carry the previous pair's points into the next image by a pyramidal Lucas–Kanade at the points
+            themselves (forward and backward, its own consistency) instead of the dense flow: for
+            ``flow.refine.mode=pyramid``, whose dense flow away from its candidates is the network's raw flow.
     """
 
     cnn_log_std: float = 0.1
@@ -348,6 +351,7 @@ class ScaleFilterConfig:
     max_rejections: int = 3
     warmup_frames: int = 5
     temporal_rotation_log_std: float = 0.005
+    refine_points: bool = False
 
     def __post_init__(self) -> None:
         for name in ("cnn_log_std", "motion_log_std", "temporal_log_std", "gate_sigma", "max_inconsistency"):

@@ -132,7 +132,8 @@ class ScaleFusion:
         temporal_scale, temporal_std = None, None
         if cfg.scale.temporal:
             rel = relative_scale(self.middle, flow, inconsistency, K, R, t, max_inconsistency=sf.max_inconsistency,
-                                 min_parallax_deg=sf.min_parallax_deg, min_points=sf.min_points)
+                                 min_parallax_deg=sf.min_parallax_deg, min_points=sf.min_points,
+                                 grey_pair=grey_pair if sf.refine_points else None)
             temporal_scale, temporal_std = rel.scale, rel.log_std
             if temporal_std is not None and sf.temporal_rotation_log_std > 0:
                 # the relative scale re-triangulates the previous pair's points with this pair's pose: its error
