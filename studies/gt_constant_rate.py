@@ -28,12 +28,13 @@ def describe(poses: np.ndarray, threshold: float, min_pairs: int) -> dict:
     """The segments of one ground truth and the typical frame-to-frame change of its rotation elsewhere."""
     segments = constant_rate_segments(poses, threshold, min_pairs)
     rates = pair_rotations_deg(poses)
-    change = rotation_changes_deg(poses)
-    inside = pairs_in_segments(segments, len(rates))[1:len(change) + 1]  # change k is around pair k + 1
+    change = rotation_changes_deg(rates)
+    in_segment = pairs_in_segments(segments, len(rates))
+    inside = in_segment[1:len(change) + 1]  # change k is around pair k + 1
     return {"frames": len(poses),
             "segments": [{"first_pair": a, "pairs": n, "frames": [a, a + n],
                           "rate_deg": [round(float(v), 4) for v in rates[a]]} for a, n in segments],
-            "pairs_in_segments": int(pairs_in_segments(segments, len(rates)).sum()),
+            "pairs_in_segments": int(in_segment.sum()),
             "median_rotation_change_deg_elsewhere": round(float(np.median(change[~inside])), 4)}
 
 

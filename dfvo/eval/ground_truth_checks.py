@@ -18,29 +18,26 @@ from __future__ import annotations
 
 import numpy as np
 
+from dfvo.geometry.pose_covariance import so3_log
+
 __all__ = ["pair_rotations_deg", "rotation_changes_deg", "constant_rate_segments", "pairs_in_segments"]
 
 
 def pair_rotations_deg(poses: np.ndarray) -> np.ndarray:
     """(N-1,3) rotation vectors in degrees of the pairs' relative rotations ``R_k`` of (N,4,4) or (N,3,4) poses
-    (angles below 180 deg)."""
+    (angles below 180 deg; :func:`dfvo.geometry.pose_covariance.so3_log`)."""
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] not in ((4, 4), (3, 4)):
         raise ValueError(f"ground-truth check: poses of shape {poses.shape}; expected (N,4,4) or (N,3,4)")
     rot = np.einsum("nji,njk->nik", poses[:-1, :3, :3], poses[1:, :3, :3])
-    tr = np.clip((np.trace(rot, axis1=1, axis2=2) - 1.0) * 0.5, -1.0, 1.0)
-    angle = np.arccos(tr)
-    axis = np.stack([rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]], 1)
-    sin = np.sin(angle)
-    factor = np.where(sin > 1e-12, angle / np.maximum(2.0 * sin, 1e-300), 0.5)  # small angles: vee(R - R^T) / 2
-    return np.degrees(axis * factor[:, None])
+    return np.degrees(so3_log(rot).numpy())
 
 
-def rotation_changes_deg(poses: np.ndarray) -> np.ndarray:
-    """(N-3,) the largest axis of each second difference ``R_{k+2} - 2 R_{k+1} + R_k`` of the pairs' rotation
-    vectors (degrees): how much the rotation rate changes around pair ``k+1``."""
-    rv = pair_rotations_deg(poses)
-    return np.abs(rv[2:] - 2.0 * rv[1:-1] + rv[:-2]).max(1)
+def rotation_changes_deg(rates: np.ndarray) -> np.ndarray:
+    """(P-2,) the largest axis of each second difference ``R_{k+2} - 2 R_{k+1} + R_k`` of the pairs' rotation
+    vectors ``rates`` (P,3) degrees (:func:`pair_rotations_deg`): how much the rotation rate changes around pair
+    ``k+1``."""
+    return np.abs(rates[2:] - 2.0 * rates[1:-1] + rates[:-2]).max(1)
 
 
 def constant_rate_segments(poses: np.ndarray, threshold_deg: float = 0.01,
@@ -57,7 +54,7 @@ def constant_rate_segments(poses: np.ndarray, threshold_deg: float = 0.01,
     """
     if len(poses) < 4:
         return []
-    steady = rotation_changes_deg(poses) < threshold_deg  # (P-2,): pairs k, k+1, k+2 agree
+    steady = rotation_changes_deg(pair_rotations_deg(poses)) < threshold_deg  # (P-2,): pairs k, k+1, k+2 agree
     segments, k = [], 0
     while k < len(steady):
         if not steady[k]:

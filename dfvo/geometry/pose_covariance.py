@@ -17,6 +17,7 @@ Convention (one for the whole package: ``frames.csv``, :class:`dfvo.api.Odometry
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from dfvo.geometry.essential_refine import skew
@@ -37,16 +38,16 @@ def symmetric(C: torch.Tensor) -> torch.Tensor:
     return 0.5 * (C + C.transpose(-1, -2))
 
 
-def so3_log(R: torch.Tensor) -> torch.Tensor:
-    """Rotation vector (3,) of a rotation matrix (3,3), float64 (exact for angles below pi)."""
-    R = R.to(torch.float64)
-    cos = ((torch.diagonal(R).sum() - 1.0) / 2.0).clamp(-1.0, 1.0)
+def so3_log(R: torch.Tensor | np.ndarray) -> torch.Tensor:
+    """Rotation vectors (...,3) of rotation matrices (...,3,3) (torch or numpy), float64 (exact for angles below
+    pi; below 1e-6 rad the first-order ``vee(R - R^T) / 2``)."""
+    R = torch.as_tensor(R, dtype=torch.float64)
+    cos = ((torch.diagonal(R, dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
     angle = torch.arccos(cos)
     v = antisymmetric_vee(R) * 2.0  # 2 sin(angle) axis
-    s = torch.sin(angle)
-    if float(angle) < 1e-6:
-        return 0.5 * v
-    return v * (angle / (2.0 * s))
+    small = angle < 1e-6
+    factor = torch.where(small, torch.full_like(angle, 0.5), angle / (2.0 * torch.sin(angle)).masked_fill(small, 1.0))
+    return v * factor[..., None]
 
 def antisymmetric_vee(M: torch.Tensor) -> torch.Tensor:
     """The rotation vector of a rotation matrix ``M`` near the identity, to first order (exact derivative at I)."""

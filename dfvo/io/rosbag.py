@@ -29,7 +29,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from dfvo.geometry.pose_covariance import propagate_pose_covariance, ros_pose_covariance, ros_twist_covariance
+from dfvo.geometry.pose_covariance import (
+    propagate_pose_covariance,
+    ros_pose_covariance,
+    ros_twist_covariance,
+    so3_log,
+)
 
 __all__ = ["OdometryBagWriter", "ROS_HINT", "NOMINAL_PERIOD_S", "TOPIC_ODOMETRY", "TOPIC_TF", "TOPIC_GROUND_TRUTH",
            "rotation_to_quaternion", "import_rosbags"]
@@ -174,7 +179,7 @@ class OdometryBagWriter:
             dt = None if timestamp is None or self.stamp_prev is None else stamp - self.stamp_prev
             if dt is not None and dt > 0:
                 Rt = T_step[:3, :3].T
-                twist = (Rt @ T_step[:3, 3] / dt, Rt @ _rotation_vector(T_step[:3, :3]) / dt)
+                twist = (Rt @ T_step[:3, 3] / dt, Rt @ so3_log(T_step[:3, :3]).numpy() / dt)
                 twist_cov = ros_twist_covariance(cov_step, torch.from_numpy(T_step), dt)
             else:
                 twist_cov[0] = -1.0  # unknown (no time between the frames)
@@ -207,13 +212,3 @@ class OdometryBagWriter:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
-
-
-def _rotation_vector(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) of a rotation matrix (3,3) (angles below pi)."""
-    cos = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
-    angle = math.acos(cos)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-6:
-        return 0.5 * v
-    return v * (angle / (2.0 * math.sin(angle)))
