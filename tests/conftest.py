@@ -21,7 +21,6 @@ import pytest
 import torch
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-REPO = REPO_ROOT
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 
 torch.set_num_threads(2)
@@ -87,7 +86,7 @@ class ToolCli:
         cwd.mkdir(parents=True, exist_ok=True)
 
     def args(self, *args: str) -> list[str]:
-        return [sys.executable, str(REPO / self.script), *args]
+        return [sys.executable, str(REPO_ROOT / self.script), *args]
 
     def env(self) -> dict[str, str]:
         env = dict(os.environ, OMP_NUM_THREADS="1")
@@ -97,7 +96,8 @@ class ToolCli:
     def __call__(self, *args: str, check: bool = True, timeout: float = 300,
                  in_subprocess: bool = False) -> subprocess.CompletedProcess:
         if in_subprocess or "-m" in args or "--multirun" in args:
-            proc = _run_process(self.args(*args), self.cwd, self.env(), timeout)
+            proc = subprocess.run(self.args(*args), cwd=self.cwd, capture_output=True, text=True, timeout=timeout,
+                                  env=self.env())
         else:
             proc = self.in_process(*args)
         if check and proc.returncode != 0:
@@ -121,8 +121,9 @@ class ToolCli:
         code: int = 0
         try:
             os.chdir(self.cwd)
-            sys.argv = [str(REPO / self.script), *args]
-            os.environ.pop("HYDRA_FULL_ERROR", None)
+            sys.argv = [str(REPO_ROOT / self.script), *args]
+            os.environ.clear()
+            os.environ.update(self.env())  # the subprocess's environment, one thread included
             torch.set_num_threads(1)
             with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings(), \
                     _keeping_existing_log_handlers():
@@ -176,10 +177,6 @@ def _keeping_existing_log_handlers() -> Iterator[None]:
         yield
     finally:
         logging.config._clearExistingHandlers = original
-
-
-def _run_process(argv: list[str], cwd: Path, env: dict[str, str], timeout: float) -> subprocess.CompletedProcess:
-    return subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
 
 
 @pytest.fixture
