@@ -30,7 +30,7 @@ Sources:
 
 Usage: python benchmarks/infer_fps.py [--frames N] [--height 192] [--width 640] [--threads 2]
        [--sources oracle|network|random-network] [--data synthetic|kitti_odom --root ROOT --seq 07]
-       [--repeat N] [--overlap none|load|full] [--no-overlap] [--device cpu|cuda|auto]
+       [--repeat N] [--overlap none|load|full|auto] [--no-overlap] [--device cpu|cuda|auto]
        [--overrides flow.refine.iterations=5 ...] [--compare "A overrides" "B overrides" [--rounds 2]]
 
 KITTI 07 with the defaults (issue 27's figure), and PyTorch against OpenVINO back to back:
@@ -220,12 +220,13 @@ def _report(args: argparse.Namespace, summary: dict, cfg: object, fps_runs: list
             load_before: float) -> dict[str, object]:
     timing = summary["timing_ms_per_frame"]
     per_frame_ms = 1000.0 / summary["fps"]
-    loading_ms = timing.get("load", 0.0) if args.overlap == "none" else timing.get("wait_load", 0.0)
+    overlap = summary.get("overlap", args.overlap)  # the mode that ran (``auto`` resolved)
+    loading_ms = timing.get("load", 0.0) if overlap == "none" else timing.get("wait_load", 0.0)
     metrics = summary.get("metrics") or {}
     return {
         "data": args.data, "sources": args.sources, "resolution": [args.height, args.width],
         "frames": summary["frames"], "fps": round(summary["fps"], 3), "fps_runs": [round(f, 3) for f in fps_runs],
-        "overlap": args.overlap, "device": summary.get("device"),
+        "overlap": overlap, "device": summary.get("device"),
         "fps_without_loading": round(1000.0 / max(per_frame_ms - loading_ms, 1e-9), 3),
         "timing_ms_per_frame": {k: round(v, 2) for k, v in timing.items()},
         "cpu_ms_per_frame": summary["cpu_ms_per_frame"],

@@ -44,12 +44,13 @@ class PoseFormat(StrEnum):
 
 class OverlapMode(StrEnum):
     """What runs beside the networks in the inference loop (``overlap``; :mod:`dfvo.inference.loop`): ``none`` (the
-    serial loop), ``load`` (frames decoded in a loader thread) or ``full`` (also the refinement and the tracker in a
-    tracker thread)."""
+    serial loop), ``load`` (frames decoded in a loader thread), ``full`` (also the refinement and the tracker in a
+    tracker thread) or ``auto`` (``full`` with two or more torch threads or on CUDA, else ``load``)."""
 
     none = "none"
     load = "load"
     full = "full"
+    auto = "auto"
 
 
 class ViewerKind(StrEnum):
@@ -289,7 +290,8 @@ class InferConfig:
             metric depth, ``7dof`` for monocular depth, ``scale``, ``none``). pose_format: trajectory file format.
         batch_size: frame pairs per network batch. device: ``cpu``, ``cuda``, ``auto`` (CUDA when available).
         overlap: what runs beside the networks (:class:`OverlapMode`; ``load``: frame decoding in a thread, ``full``:
-            also the refinement and the tracker, ``none``: serial); the poses are the same in every mode.
+            also the refinement and the tracker, ``none``: serial, ``auto``: ``full`` with two or more torch threads
+            or on CUDA, else ``load``); the poses are the same in every mode for the same threads per stage.
         cuda_sync: synchronise CUDA at every stage boundary, so each stage's time in ``summary.json`` is its GPU
             work (it serialises the GPU with the host: measure FPS without it).
         num_threads: torch threads (null: torch's default). progress: progress bar on stderr.
@@ -310,7 +312,7 @@ class InferConfig:
     pose_format: PoseFormat = PoseFormat.kitti
     batch_size: int = 4
     device: str = "cpu"
-    overlap: OverlapMode = OverlapMode.load
+    overlap: OverlapMode = OverlapMode.auto
     cuda_sync: bool = False
     num_threads: int | None = None
     progress: bool = True

@@ -8,15 +8,18 @@ Convention:
     of the earlier frame of each pair, in metres (with ``tracker.scale.depth_views=2`` also the later frame's);
     each frame's depth is computed once. Frame 0's pose is the identity and has no record.
 
-Overlap (``overlap``, :class:`dfvo.inference.config.OverlapMode`; ``overlap=`` of ``infer.py``): ``"load"`` (the
-default) decodes and resizes the frames of batch k+1 in a loader thread while the main thread works on batch k
-(pinned for a CUDA copy; not for the synthetic world, whose renderer the oracle sources share and whose caches are
-not thread-safe: it renders in the main thread). ``"full"`` also moves the refinement and the tracker to a tracker
-thread, which works on batch k-1 while the main thread runs the flow and depth networks of batch k; on a CPU the two
+Overlap (``overlap``, :class:`dfvo.inference.config.OverlapMode`; ``overlap=`` of ``infer.py``): ``"load"``
+decodes and resizes the frames of batch k+1 in a loader thread while the main thread works on batch k (pinned for a
+CUDA copy; not for the synthetic world, whose renderer the oracle sources share and whose caches are not
+thread-safe: it renders in the main thread). ``"full"`` also moves the tracker to a tracker thread, which works on
+batch k-1 while the main thread runs the flow and depth networks of batch k; the refinement is split between them
+(the dense part after the networks, the pyramid part before the tracker: :func:`_split_refine`); on a CPU the two
 busy threads then get half of the torch threads each (restored after the loop), so their OpenMP teams do not compete
-for the same cores. ``"none"`` is the serial loop: on a CPU shared with other processes it is much slower than
-``"load"`` (GNU OpenMP's workers busy-wait long after each parallel region unless the process has more OpenMP
-threads than CPUs, as the loader thread makes it; measured in docs/speed.md, "Overlap"). The tracker's state is
+for the same cores: on two cores, two single-threaded pipelines, which waste none of the time small tensor ops lose
+to OpenMP's fork and join (docs/speed.md, "Overlap"). ``"auto"`` (the default) is ``"full"`` with two or more torch
+threads or on CUDA, else ``"load"``. ``"none"`` is the serial loop: on a CPU shared with other processes it is much
+slower than ``"load"`` (GNU OpenMP's workers busy-wait long after each parallel region unless the process has more
+OpenMP threads than CPUs, as the loader thread makes it; measured in docs/speed.md, "Overlap"). The tracker's state is
 sequential, so batches reach it one at a time and in order; each frame draws its random samples from its own seeded
 generator, so the poses are the same, bit for bit, in every mode and for any batch size. Stage times of different
 threads overlap (``load``, ``refine`` and ``tracker`` are measured in the thread that runs them; ``wait_load`` and
@@ -28,27 +31,32 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from dfvo.data.sequence import FrameSequence
 from dfvo.inference.config import InferConfig, OverlapMode
 from dfvo.inference.timing import StageTimer
-from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
+from dfvo.matching.flow_refinement import FlowRefinementConfig, RefinementMode, refine_consecutive
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.tracking import FrameResult, VisualOdometry
 from dfvo.tracking.config import TrackerMode
 from dfvo.validation import choice
 
-__all__ = ["FrameRecord", "FrameStepper", "track_sequence"]
+__all__ = ["FrameRecord", "FrameStepper", "resolve_overlap", "track_sequence"]
 
 
-def _overlap_mode(overlap: OverlapMode | str | bool) -> OverlapMode:
-    """The :class:`OverlapMode` of an ``overlap`` argument (True: full; False: none)."""
+def resolve_overlap(overlap: OverlapMode | str | bool, device: str = "cpu") -> OverlapMode:
+    """The :class:`OverlapMode` the loop runs for an ``overlap`` argument (True: full; False: none; ``auto``:
+    ``full`` on CUDA or with two or more torch threads, else ``load``)."""
     if isinstance(overlap, bool):
         return OverlapMode.full if overlap else OverlapMode.none
-    return choice(OverlapMode, overlap, "overlap")
+    mode = choice(OverlapMode, overlap, "overlap")
+    if mode == OverlapMode.auto:
+        cuda = torch.device(device).type == "cuda"
+        return OverlapMode.full if cuda or torch.get_num_threads() >= 2 else OverlapMode.load
+    return mode
 
 
 @dataclass
@@ -159,12 +167,27 @@ def _pair_stage(imgs: torch.Tensor, idx: list[int], flow_src: FlowSource, depth_
 
 
 def _refine_stage(work: _Batch, refine: FlowRefinementConfig | None, timer: StageTimer) -> None:
-    """Refine the batch's flows photometrically in place (nothing when ``refine`` is None)."""
+    """Refine the batch's flows photometrically in place (nothing when ``refine`` is None); adds its seconds to
+    the batch's ``t_refine`` share (two threads may each refine a part of the same batch, see :func:`_split_refine`)."""
     if refine is None:
         return
-    with timer("refine"):  # only this thread refines: last["refine"] is this call's
+    start = time.perf_counter()
+    with timer("refine"):
         work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
-    work.share["t_refine"] = timer.last["refine"] / len(work.idx)
+    work.share["t_refine"] += (time.perf_counter() - start) / len(work.idx)
+
+
+def _split_refine(refine: FlowRefinementConfig | None
+                  ) -> tuple[FlowRefinementConfig | None, FlowRefinementConfig | None]:
+    """The refinement of ``overlap="full"`` as (the network thread's part, the tracker thread's part).
+
+    ``dense_pyramid`` is the dense refinement followed by the pyramid one at the candidates of its result, so the
+    network thread runs the dense part beside the tracker and the tracker thread the pyramid part: the same flows as
+    one call, bit for bit, with the two busy threads' work closer to equal. Other modes run in the tracker thread.
+    """
+    if refine is None or refine.iterations == 0 or refine.mode != RefinementMode.dense_pyramid:
+        return None, refine
+    return replace(refine, mode=RefinementMode.dense), replace(refine, mode=RefinementMode.pyramid)
 
 
 def _track_stage(work: _Batch, vo: VisualOdometry, K: torch.Tensor, timer: StageTimer) -> list[FrameResult]:
@@ -241,10 +264,11 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
             ``wait_tracker`` when those run in background threads).
         device: where the frames, networks and tracker tensors live (``cpu``, ``cuda``, ``cuda:N``).
         finetuner: optional online flow finetuner (:class:`dfvo.training.online_flow.OnlineFlowFinetuner`).
-        overlap: ``"none"``, ``"load"`` (decoding in a background thread) or ``"full"`` (also the refinement and
-            the tracker; see the module docstring); True: ``"full"``, False: ``"none"``.
+        overlap: ``"none"``, ``"load"`` (decoding in a background thread), ``"full"`` (also the refinement and
+            the tracker; see the module docstring) or ``"auto"`` (:func:`resolve_overlap`); True: ``"full"``,
+            False: ``"none"``.
     """
-    mode = _overlap_mode(overlap)
+    mode = resolve_overlap(overlap, device)
     K = seq.K.to(device)[None]
     two_views = _two_views(vo)
     batches = _batches(seq.length, batch_size)
@@ -259,9 +283,10 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
     if mode == OverlapMode.full and not cuda:  # two busy threads share the cores: half of the torch threads each
         torch.set_num_threads(max(1, threads // 2))
 
+    refine_main, refine_tracker = _split_refine(refine) if mode == OverlapMode.full else (refine, None)
+
     def track(work: _Batch) -> tuple[_Batch, list[FrameResult]]:
-        if mode == OverlapMode.full:  # the refinement runs in the tracker thread, beside the next batch's networks
-            _refine_stage(work, refine, timer)
+        _refine_stage(work, refine_tracker, timer)  # overlap="full": beside the next batch's networks
         return work, _track_stage(work, vo, K, timer)
 
     depth_carry: torch.Tensor | None = None  # depth of the first frame of the next batch (= this batch's last)
@@ -273,8 +298,8 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
             imgs = loaded if prev_img is None else torch.cat([prev_img, loaded])
             prev_img = imgs[-1:]
             work, depth_carry = _pair_stage(imgs, idx, flow_src, depth_src, timer, two_views, depth_carry, finetuner)
+            _refine_stage(work, refine_main, timer)
             if tracker_pool is None:
-                _refine_stage(work, refine, timer)
                 yield from _records(*track(work))
                 continue
             if pending is not None:

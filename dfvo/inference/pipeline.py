@@ -26,7 +26,7 @@ from dfvo.inference.assembly import build_observers, build_sources, resolve_devi
 from dfvo.inference.config import InferConfig, PoseFormat
 from dfvo.inference.frames import build_sequence
 from dfvo.inference.live import run_live
-from dfvo.inference.loop import track_sequence
+from dfvo.inference.loop import resolve_overlap, track_sequence
 from dfvo.inference.outputs import (
     FramesCsv,
     clear_previous_outputs,
@@ -120,6 +120,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     bar = tqdm(total=seq.length - 1, desc=f"dfvo {seq.name}", unit="frame", disable=not cfg.progress)
     stopped: RunInterrupted | None = None
     failed: Exception | None = None
+    overlap = resolve_overlap(cfg.overlap, device)
     start = time.perf_counter()
     try:
         with writing(pose_file):
@@ -128,7 +129,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
             table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init))
         with SignalsToInterrupt():
             for record in track_sequence(seq, flow_src, depth_src, vo, refine=refine, batch_size=cfg.batch_size,
-                                         timer=timer, device=device, finetuner=finetuner, overlap=cfg.overlap):
+                                         timer=timer, device=device, finetuner=finetuner, overlap=overlap):
                 write_frame(record, poses, table, trajectory, diagnostics, observers, stamp(seq, record.index))
                 bar.update(1)
                 bar.set_postfix(fps=f"{len(diagnostics) / (time.perf_counter() - start):.2f}")
@@ -156,7 +157,8 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
         extra = {**extra, "error": str(failed)}
         log.error("stopped by an error after %d of %d poses (%s); writing partial results", len(trajectory),
                   seq.length, failed)
-    extra = {**extra, "camera_height": camera_height_report(vo)}
+    extra = {**extra, "camera_height": camera_height_report(vo), "overlap": overlap.value,
+             "torch_threads": torch.get_num_threads()}
     try:
         summary = finish_run(seq, np.stack(trajectory), diagnostics, timer, wall, out, align=cfg.align,
                              pose_file=pose_file, warn_fallback_rate=cfg.warn_fallback_rate, partial=partial,

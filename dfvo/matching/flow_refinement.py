@@ -73,7 +73,7 @@ from dfvo.matching.image_ops import grey as to_grey
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, refine_pairs_pyramid, refine_pyramid
 from dfvo.validation import choice
 
-__all__ = ["RefinementMethod", "FlowRefinementConfig", "refine_flow", "refine_forward_backward",
+__all__ = ["RefinementMethod", "RefinementMode", "FlowRefinementConfig", "refine_flow", "refine_forward_backward",
            "refine_consecutive"]
 
 

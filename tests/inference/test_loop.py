@@ -1,10 +1,12 @@
 """The inference loop: its overlap modes (serial; loader thread; loader and tracker threads) give the same poses for
-any batch size; frames are decoded once each, in the background unless serial; refinement is applied to the
+any batch size (``full`` splitting the refinement between its two threads; ``auto``: full with two torch threads or on
+CUDA); frames are decoded once each, in the background unless serial; refinement is applied to the
 network-like flow; an early stop or a tracker error leaves no thread behind; an unknown mode is one clear error;
 ``overlap=`` and ``cuda_sync=`` are settings of infer.py that reach the loop and its stage timer."""
 
 from __future__ import annotations
 
+import json
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -14,8 +16,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+import dfvo.inference.loop as loop
+from dfvo.inference.config import OverlapMode
 from dfvo.inference.frames import FrameSequence
-from dfvo.inference.loop import track_sequence
+from dfvo.inference.loop import resolve_overlap, track_sequence
 from dfvo.inference.timing import StageTimer
 from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
 from dfvo.synthetic import SyntheticWorld
@@ -156,7 +160,7 @@ def test_early_stop_and_tracker_errors_leave_no_thread(world_data: tuple) -> Non
 
 def test_an_unknown_overlap_mode_is_one_clear_error(world_data: tuple) -> None:
     seq, src = world_data
-    with pytest.raises(ValueError, match=r"overlap='both'; expected one of \['none', 'load', 'full'\]"):
+    with pytest.raises(ValueError, match=r"overlap='both'; expected one of \['none', 'load', 'full', 'auto'\]"):
         _run(seq, src, 2, "both", None)
     assert not _dfvo_threads()
 
@@ -185,5 +189,47 @@ def test_overlap_and_cuda_sync_are_infer_settings(tmp_path: Path, monkeypatch: p
                                               f"cuda_sync={sync}"])
         summary = pipeline.run_inference(cfg)
         poses[overlap] = np.loadtxt(summary["pose_file"])
-    assert seen == [("none", True), ("full", False)]
+    assert seen == [(OverlapMode.none, True), (OverlapMode.full, False)]
     assert poses["none"].shape == (4, 12) and np.array_equal(poses["none"], poses["full"])
+    for overlap in ("none", "full"):
+        assert json.loads((tmp_path / overlap / "summary.json").read_text())["overlap"] == overlap
+
+
+def test_auto_overlap_is_full_with_two_torch_threads_or_cuda_else_load() -> None:
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert resolve_overlap("auto") == OverlapMode.full
+        torch.set_num_threads(1)
+        assert resolve_overlap("auto") == OverlapMode.load
+        assert resolve_overlap("auto", "cuda:0") == OverlapMode.full
+        assert resolve_overlap("none") == OverlapMode.none and resolve_overlap(True) == OverlapMode.full
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_full_overlap_splits_the_refinement_between_the_two_threads(world_data: tuple,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """With ``overlap="full"`` the dense refinement runs after the networks in the main thread and the pyramid one in
+    the tracker thread; the flows the tracker gets are those of one ``dense_pyramid`` call."""
+    seq, src = world_data
+    calls: list[tuple[str, str]] = []
+    real = loop.refine_consecutive
+
+    def spy(images: torch.Tensor, fwd: torch.Tensor, bwd: torch.Tensor, cfg: FlowRefinementConfig):
+        calls.append((threading.current_thread().name, cfg.mode.value))
+        return real(images, fwd, bwd, cfg)
+
+    monkeypatch.setattr(loop, "refine_consecutive", spy)
+    out = _run(seq, src, 3, "full", FlowRefinementConfig())
+    batches = -(-(N - 1) // 3)
+    main = threading.current_thread().name
+    assert calls.count((main, "dense")) == batches
+    assert sum(1 for name, mode in calls if name.startswith("dfvo-track") and mode == "pyramid") == batches
+    assert len(calls) == 2 * batches
+    images = torch.stack([seq.image(i) for i in range(4)])
+    fwd, bwd = real(images, torch.stack([src.fwd[i] for i in range(3)]), torch.stack([src.bwd[i] for i in range(3)]),
+                    FlowRefinementConfig())
+    assert torch.equal(torch.stack([r.flow_fwd for r in out[:3]]), fwd)
+    assert torch.equal(torch.stack([r.flow_bwd for r in out[:3]]), bwd)
+    assert all(r.stage_seconds["t_refine"] > 0 for r in out)
