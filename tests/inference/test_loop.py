@@ -195,6 +195,22 @@ def test_overlap_and_cuda_sync_are_infer_settings(tmp_path: Path, monkeypatch: p
         assert json.loads((tmp_path / overlap / "summary.json").read_text())["overlap"] == overlap
 
 
+def test_full_overlap_places_each_refinement_mode_on_one_side() -> None:
+    """``dense_pyramid`` is split (dense after the networks, pyramid before the tracker), ``pyramid`` alone runs
+    beside the networks, ``dense`` alone beside the tracker; no refinement, nothing."""
+    split = loop._split_refine
+    main, tracker = split(FlowRefinementConfig())
+    assert (main.mode.value, tracker.mode.value) == ("dense", "pyramid")
+    assert main.pyramid == tracker.pyramid and main.iterations == tracker.iterations
+    only = FlowRefinementConfig(mode="pyramid")
+    assert split(only) == (only, None)
+    dense = FlowRefinementConfig(mode="dense")
+    assert split(dense) == (None, dense)
+    assert split(None) == (None, None)
+    off = FlowRefinementConfig(iterations=0)
+    assert split(off) == (None, off)
+
+
 def test_auto_overlap_is_full_with_two_torch_threads_or_cuda_else_load() -> None:
     threads = torch.get_num_threads()
     try:
