@@ -29,6 +29,8 @@ run fps_kitti06_paper_pipeline python benchmarks/infer_fps.py --data kitti_odom 
     --sources network --overrides experiment=paper
 run fps_synthetic_network python benchmarks/infer_fps.py --data synthetic --frames 30 --sources network
 run fps_synthetic_oracle python benchmarks/infer_fps.py --data synthetic --frames 30 --sources oracle
+run fps_synthetic_oracle_geometry python benchmarks/infer_fps.py --data synthetic --frames 30 --sources oracle \
+    --overrides tracker.road_alignment.enabled=false
 run depth_net python benchmarks/depth_net.py --threads 2 --skip-train
 run flow_net python benchmarks/flow_net.py --skip-eval
 run tracker python benchmarks/tracker.py --threads 2
