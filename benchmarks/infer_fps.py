@@ -8,6 +8,8 @@ flow, refine, depth, tracker, the tracker's own split into selection / E-tracker
 ``wait_*`` stages of the overlapped loop: stages run in three threads, so they overlap and their sum can exceed
 ``1000 / fps``), ``cpu_ms_per_frame`` (process CPU time: ``loop``, everything per frame, and each stage; it follows
 the work, not a shared machine's load: compare it in the serial loop, ``--overlap none`` or ``load``),
+``thread_cpu_ms_per_frame`` (each stage's CPU time in the thread that ran it: with ``overlap=full`` on two cores, one
+torch thread per busy thread, it is the stage's own work while the threads overlap),
 ``work_per_frame`` (load-independent counts: refined pixel-iterations, network input pixels,
 correspondences), the RPE/ATE of the run, the runtime that ran each network (``runtime``: torch, onnxruntime,
 openvino), torch threads, machine and the 1-minute load average before and after (the machine may be shared: compare
@@ -201,6 +203,8 @@ def _run_once(args: argparse.Namespace) -> tuple[dict, object]:
     frames = max(int(summary["frames"]) - 1, 1)  # tracked frames
     summary["cpu_ms_per_frame"] = {"loop": round(1000.0 * meter.cpu_seconds / frames, 2),
                                    **{k: round(v, 2) for k, v in meter.timer.cpu_ms_per_frame(frames).items()}}
+    summary["thread_cpu_ms_per_frame"] = {k: round(v, 2)
+                                          for k, v in meter.timer.thread_cpu_ms_per_frame(frames).items()}
     return summary, cfg
 
 
@@ -230,6 +234,7 @@ def _report(args: argparse.Namespace, summary: dict, cfg: object, fps_runs: list
         "fps_without_loading": round(1000.0 / max(per_frame_ms - loading_ms, 1e-9), 3),
         "timing_ms_per_frame": {k: round(v, 2) for k, v in timing.items()},
         "cpu_ms_per_frame": summary["cpu_ms_per_frame"],
+        "thread_cpu_ms_per_frame": summary["thread_cpu_ms_per_frame"],
         "work_per_frame": _work(cfg, summary),
         "rpe_m": metrics.get("rpe_m"), "rpe_deg": metrics.get("rpe_deg"), "ate_m": metrics.get("ate_m"),
         "runtime": {k: summary.get("sources", {}).get(f"{k}_runtime") for k in ("flow", "depth")},

@@ -106,11 +106,11 @@ class _Loader:
         self.futures: dict[int, Future] = {}
 
     def _load(self, k: int) -> torch.Tensor:
-        start, cpu = time.perf_counter(), time.process_time()
+        start, cpu, own = time.perf_counter(), time.process_time(), time.thread_time()
         out = torch.stack([self.seq.image(i) for i in self.frames[k]])
         if self.pin:
             out = out.pin_memory()
-        self.timer.add("load", time.perf_counter() - start, time.process_time() - cpu)
+        self.timer.add("load", time.perf_counter() - start, time.process_time() - cpu, time.thread_time() - own)
         return out
 
     def _submit(self, k: int) -> None:

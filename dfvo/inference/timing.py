@@ -7,7 +7,10 @@ run's wall time. ``wait_*`` stages are the time the main thread spent blocked on
 Each stage also accumulates the process's CPU time (``time.process_time``: every thread of the process, torch's
 OpenMP workers included) while it ran: on a shared machine the wall time follows the neighbours' load and the CPU
 time the work. With stages in several threads at once (``overlap="full"``) a stage's CPU time also counts what the
-other threads did meanwhile; compare CPU times in the serial loop (``overlap="none"`` or ``"load"``).
+other threads did meanwhile; compare CPU times in the serial loop (``overlap="none"`` or ``"load"``). The calling
+thread's own CPU time (``time.thread_time``) is kept too: it leaves out the other threads, and with one torch thread
+per busy thread (``overlap="full"`` on two cores) it is the stage's whole work, so it shows how the two threads'
+work divides while they overlap (it misses torch's OpenMP workers when a stage runs on several threads).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ class StageTimer:
         self.cuda_sync = bool(cuda_sync)
         self.total: dict[str, float] = {}
         self.cpu_total: dict[str, float] = {}
+        self.thread_cpu_total: dict[str, float] = {}
         self.last: dict[str, float] = {}
         self._lock = threading.Lock()
 
@@ -44,25 +48,28 @@ class StageTimer:
     def __call__(self, name: str) -> Iterator[None]:
         """Time the block as stage ``name`` (wall and process CPU time)."""
         self._sync()
-        start, cpu = time.perf_counter(), time.process_time()
+        start, cpu, own = time.perf_counter(), time.process_time(), time.thread_time()
         try:
             yield
         finally:
             self._sync()
-            self.add(name, time.perf_counter() - start, time.process_time() - cpu)
+            self.add(name, time.perf_counter() - start, time.process_time() - cpu, time.thread_time() - own)
 
     def _sync(self) -> None:
         if self.cuda_sync and torch.cuda.is_available():
             torch.cuda.synchronize()
 
-    def add(self, name: str, seconds: float, cpu_seconds: float | None = None) -> None:
-        """Add ``seconds`` of wall time (and ``cpu_seconds`` of process CPU time, if known) to stage ``name`` (from
-        any thread)."""
+    def add(self, name: str, seconds: float, cpu_seconds: float | None = None,
+            thread_cpu_seconds: float | None = None) -> None:
+        """Add ``seconds`` of wall time (and ``cpu_seconds`` of process CPU time and ``thread_cpu_seconds`` of the
+        calling thread's, if known) to stage ``name`` (from any thread)."""
         with self._lock:
             self.total[name] = self.total.get(name, 0.0) + seconds
             self.last[name] = seconds
             if cpu_seconds is not None:
                 self.cpu_total[name] = self.cpu_total.get(name, 0.0) + cpu_seconds
+            if thread_cpu_seconds is not None:
+                self.thread_cpu_total[name] = self.thread_cpu_total.get(name, 0.0) + thread_cpu_seconds
 
     def ms_per_frame(self, frames: int) -> dict[str, float]:
         """Milliseconds of wall time per frame of every stage."""
@@ -73,3 +80,8 @@ class StageTimer:
         """Milliseconds of process CPU time per frame of every stage that measured it (see the module docstring)."""
         with self._lock:
             return {k: 1000.0 * v / max(frames, 1) for k, v in self.cpu_total.items()}
+
+    def thread_cpu_ms_per_frame(self, frames: int) -> dict[str, float]:
+        """Milliseconds per frame of the CPU time of the thread that ran each stage (see the module docstring)."""
+        with self._lock:
+            return {k: 1000.0 * v / max(frames, 1) for k, v in self.thread_cpu_total.items()}
