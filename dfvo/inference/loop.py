@@ -151,9 +151,9 @@ def _pair_stage(imgs: torch.Tensor, idx: list[int], flow_src: FlowSource, depth_
         with timer("finetune"):
             for k in range(n):
                 finetuner.step(*flow_src.network_inputs(imgs[k:k + 1], imgs[k + 1:k + 2]))
-    with timer("flow"):
+    with timer("flow") as flow_lap:
         flow_fwd, flow_bwd = flow_src(imgs[:-1], imgs[1:], idx)
-    with timer("depth"):
+    with timer("depth") as depth_lap:
         depth_next = None
         if two_views:
             later = depth_src(imgs[1:], [i + 1 for i in idx])
@@ -162,7 +162,7 @@ def _pair_stage(imgs: torch.Tensor, idx: list[int], flow_src: FlowSource, depth_
             depth_next, depth_carry = later, later[-1:]
         else:
             depth = depth_src(imgs[:-1], idx)
-    share = {"t_flow": timer.last["flow"] / n, "t_refine": 0.0, "t_depth": timer.last["depth"] / n, "t_tracker": 0.0}
+    share = {"t_flow": flow_lap.seconds / n, "t_refine": 0.0, "t_depth": depth_lap.seconds / n, "t_tracker": 0.0}
     return _Batch(idx, imgs, flow_fwd, flow_bwd, depth, depth_next, share), depth_carry
 
 
@@ -171,10 +171,9 @@ def _refine_stage(work: _Batch, refine: FlowRefinementConfig | None, timer: Stag
     the batch's ``t_refine`` share (two threads may each refine a part of the same batch, see :func:`_split_refine`)."""
     if refine is None:
         return
-    start = time.perf_counter()
-    with timer("refine"):
+    with timer("refine") as lap:
         work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
-    work.share["t_refine"] += (time.perf_counter() - start) / len(work.idx)
+    work.share["t_refine"] += lap.seconds / len(work.idx)
 
 
 def _split_refine(refine: FlowRefinementConfig | None
@@ -198,12 +197,12 @@ def _split_refine(refine: FlowRefinementConfig | None
 def _track_stage(work: _Batch, vo: VisualOdometry, K: torch.Tensor, timer: StageTimer) -> list[FrameResult]:
     """The tracker on the batch's pairs (K (1,3,3)), in order."""
     n = len(work.idx)
-    with timer("tracker"):  # only this thread tracks: last["tracker"] is this call's
+    with timer("tracker") as lap:
         results = vo.run(work.flow_fwd, work.flow_bwd, work.depth, K.expand(n, 3, 3), batch_size=n,
                          depths_next=work.depth_next, images=work.imgs)
     for part in ("selection", "e_tracker", "sequential"):  # the tracker's own split of its time
         timer.add(f"tracker_{part}", sum(getattr(r.diagnostics, f"time_{part}", 0.0) for r in results))
-    work.share["t_tracker"] = timer.last["tracker"] / n
+    work.share["t_tracker"] = lap.seconds / n
     return results
 
 

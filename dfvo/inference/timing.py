@@ -19,16 +19,25 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import torch
 
 from dfvo.inference.config import InferConfig
 
-__all__ = ["StageTimer"]
+__all__ = ["Lap", "StageTimer"]
+
+
+@dataclass
+class Lap:
+    """The wall seconds of one timed block (set when the block ends; ``with timer("flow") as lap: ...``)."""
+
+    seconds: float = 0.0
 
 
 class StageTimer:
-    """Accumulates seconds per named stage; ``last[name]`` is the duration of the stage's latest call.
+    """Accumulates seconds per named stage; each timed block also hands its own duration back (:class:`Lap`), so a
+    caller in any thread reads its own call's time.
 
     Args:
         cuda_sync: synchronise CUDA at every stage boundary (``cuda_sync`` of :class:`InferConfig`), so a stage's
@@ -41,19 +50,20 @@ class StageTimer:
         self.total: dict[str, float] = {}
         self.cpu_total: dict[str, float] = {}
         self.thread_cpu_total: dict[str, float] = {}
-        self.last: dict[str, float] = {}
         self._lock = threading.Lock()
 
     @contextmanager
-    def __call__(self, name: str) -> Iterator[None]:
-        """Time the block as stage ``name`` (wall and process CPU time)."""
+    def __call__(self, name: str) -> Iterator[Lap]:
+        """Time the block as stage ``name`` (wall, process and thread CPU time); yields the block's :class:`Lap`."""
         self._sync()
+        lap = Lap()
         start, cpu, own = time.perf_counter(), time.process_time(), time.thread_time()
         try:
-            yield
+            yield lap
         finally:
             self._sync()
-            self.add(name, time.perf_counter() - start, time.process_time() - cpu, time.thread_time() - own)
+            lap.seconds = time.perf_counter() - start
+            self.add(name, lap.seconds, time.process_time() - cpu, time.thread_time() - own)
 
     def _sync(self) -> None:
         if self.cuda_sync and torch.cuda.is_available():
@@ -65,7 +75,6 @@ class StageTimer:
         calling thread's, if known) to stage ``name`` (from any thread)."""
         with self._lock:
             self.total[name] = self.total.get(name, 0.0) + seconds
-            self.last[name] = seconds
             if cpu_seconds is not None:
                 self.cpu_total[name] = self.cpu_total.get(name, 0.0) + cpu_seconds
             if thread_cpu_seconds is not None:

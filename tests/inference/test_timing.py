@@ -1,4 +1,5 @@
-"""The stage timer: wall, process CPU and the calling thread's own CPU time per stage, from several threads."""
+"""The stage timer: wall, process CPU and the calling thread's own CPU time per stage, from several threads, and
+each block's own duration."""
 
 from __future__ import annotations
 
@@ -37,5 +38,8 @@ def test_a_stage_counts_its_own_thread_cpu_and_the_process_cpu_of_every_thread()
     wall = timer.ms_per_frame(1)
     assert own["wait"] < 50 and proc["wait"] >= 250 and wall["wait"] >= 390
     assert 280 <= own["work"] <= 600 and own["work"] <= proc["work"] + 5
+    with timer("lap") as lap:  # each block hands back its own duration, whatever other threads time meanwhile
+        time.sleep(0.05)
+    assert lap.seconds >= 0.05 and timer.ms_per_frame(1)["lap"] == 1000.0 * lap.seconds
     timer.add("load", 0.01, 0.02, 0.005)  # a stage timed by its caller (the loader thread)
     assert timer.thread_cpu_ms_per_frame(2)["load"] == 2.5
