@@ -9,7 +9,8 @@ flow, refine, depth, tracker, the tracker's own split into selection / E-tracker
 ``1000 / fps``), ``cpu_ms_per_frame`` (process CPU time: ``loop``, everything per frame, and each stage; it follows
 the work, not a shared machine's load: compare it in the serial loop, ``--overlap none`` or ``load``),
 ``thread_cpu_ms_per_frame`` (each stage's CPU time in the thread that ran it: with ``overlap=full`` on two cores, one
-torch thread per busy thread, it is the stage's own work while the threads overlap),
+torch thread per busy thread, it is the stage's own work while the threads overlap), ``refine_cut`` (``overlap=full``:
+where the refinement was cut between the two threads, dfvo/inference/refine_split.py),
 ``work_per_frame`` (load-independent counts: refined pixel-iterations, network input pixels,
 correspondences), the RPE/ATE of the run, the runtime that ran each network (``runtime``: torch, onnxruntime,
 openvino), torch threads, machine and the 1-minute load average before and after (the machine may be shared: compare
@@ -230,7 +231,7 @@ def _report(args: argparse.Namespace, summary: dict, cfg: object, fps_runs: list
     return {
         "data": args.data, "sources": args.sources, "resolution": [args.height, args.width],
         "frames": summary["frames"], "fps": round(summary["fps"], 3), "fps_runs": [round(f, 3) for f in fps_runs],
-        "overlap": overlap, "device": summary.get("device"),
+        "overlap": overlap, "device": summary.get("device"), "refine_cut": summary.get("refine_cut"),
         "fps_without_loading": round(1000.0 / max(per_frame_ms - loading_ms, 1e-9), 3),
         "timing_ms_per_frame": {k: round(v, 2) for k, v in timing.items()},
         "cpu_ms_per_frame": summary["cpu_ms_per_frame"],

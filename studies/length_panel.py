@@ -26,6 +26,7 @@ import json
 import math
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -198,7 +199,7 @@ def main() -> None:
     for spec in filter(None, args.configs.split(";" if ";" in args.configs else ",")):
         name, sep, overrides = spec.partition(":")
         if sep:
-            configs[name] = [o for o in overrides.split(",") if o]
+            configs[name] = [o for o in re.split(r",(?![^\[]*\])", overrides) if o]  # not inside [a,b]
         elif name in CONFIGS:
             configs[name] = CONFIGS[name]
         else:

@@ -12,8 +12,9 @@ Overlap (``overlap``, :class:`dfvo.inference.config.OverlapMode`; ``overlap=`` o
 decodes and resizes the frames of batch k+1 in a loader thread while the main thread works on batch k (pinned for a
 CUDA copy; not for the synthetic world, whose renderer the oracle sources share and whose caches are not
 thread-safe: it renders in the main thread). ``"full"`` also moves the tracker to a tracker thread, which works on
-batch k-1 while the main thread runs the flow and depth networks of batch k; the refinement is split between them
-(the dense part after the networks, the pyramid part before the tracker: :func:`_split_refine`); on a CPU the two
+batch k-1 while the main thread runs the flow and depth networks of batch k; the refinement is cut between them,
+by pairs and stages, where the two threads' busy times even out (:mod:`dfvo.inference.refine_split`: the flows are
+those of one refinement call, bit for bit, wherever the cut falls); on a CPU the two
 busy threads then get half of the torch threads each (restored after the loop), so their OpenMP teams do not compete
 for the same cores: on two cores, two single-threaded pipelines, which waste none of the time small tensor ops lose
 to OpenMP's fork and join (docs/speed.md, "Overlap"). ``"auto"`` (the default) is ``"full"`` with two or more torch
@@ -31,14 +32,15 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field
 
 import torch
 
 from dfvo.data.sequence import FrameSequence
 from dfvo.inference.config import InferConfig, OverlapMode
+from dfvo.inference.refine_split import RefineBalance, RefinePart, refine_stages, run_parts
 from dfvo.inference.timing import StageTimer
-from dfvo.matching.flow_refinement import FlowRefinementConfig, RefinementMode, refine_consecutive
+from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.tracking import FrameResult, VisualOdometry
 from dfvo.tracking.config import TrackerMode
@@ -94,6 +96,9 @@ class _Batch:
     depth: torch.Tensor
     depth_next: torch.Tensor | None
     share: dict[str, float]
+    busy_main: float = 0.0  # seconds: the networks and the network thread's refinement (overlap="full")
+    busy_tracker: float = 0.0  # seconds: the tracker thread's refinement and the tracker
+    unit_seconds: dict[int, float] = field(default_factory=dict)  # per pair of each refinement stage that ran
 
 
 class _Loader:
@@ -168,7 +173,7 @@ def _pair_stage(imgs: torch.Tensor, idx: list[int], flow_src: FlowSource, depth_
 
 def _refine_stage(work: _Batch, refine: FlowRefinementConfig | None, timer: StageTimer) -> None:
     """Refine the batch's flows photometrically in place (nothing when ``refine`` is None); adds its seconds to
-    the batch's ``t_refine`` share (two threads may each refine a part of the same batch, see :func:`_split_refine`)."""
+    the batch's ``t_refine`` share."""
     if refine is None:
         return
     with timer("refine") as lap:
@@ -176,22 +181,16 @@ def _refine_stage(work: _Batch, refine: FlowRefinementConfig | None, timer: Stag
     work.share["t_refine"] += lap.seconds / len(work.idx)
 
 
-def _split_refine(refine: FlowRefinementConfig | None
-                  ) -> tuple[FlowRefinementConfig | None, FlowRefinementConfig | None]:
-    """The refinement of ``overlap="full"`` as (the network thread's part, the tracker thread's part), placed so that
-    the two busy threads carry about equal work (KITTI 07, one thread each: networks ~72 ms a frame, dense
-    refinement ~41, pyramid ~37, tracker ~60; ~85 with ``refine_points``).
-
-    ``dense_pyramid`` is the dense refinement followed by the pyramid one at the candidates of its result, so the
-    network thread runs the dense part and the tracker thread the pyramid part: the same flows as one call, bit for
-    bit. ``pyramid`` alone runs in the network thread (beside the tracker and its refined temporal points), ``dense``
-    alone in the tracker thread.
-    """
-    if refine is None or refine.iterations == 0 or refine.mode == RefinementMode.dense:
-        return None, refine
-    if refine.mode == RefinementMode.pyramid:
-        return refine, None
-    return replace(refine, mode=RefinementMode.dense), replace(refine, mode=RefinementMode.pyramid)
+def _refine_parts(work: _Batch, parts: list[RefinePart], timer: StageTimer) -> float:
+    """Refine the pairs of ``parts`` of the batch in place (:func:`dfvo.inference.refine_split.run_parts`); adds
+    the seconds to the batch's ``t_refine`` share and returns them."""
+    if not parts:
+        return 0.0
+    with timer("refine") as lap:
+        work.flow_fwd, work.flow_bwd, per_pair = run_parts(parts, work.imgs, work.flow_fwd, work.flow_bwd)
+    work.share["t_refine"] += lap.seconds / len(work.idx)
+    work.unit_seconds.update(per_pair)
+    return lap.seconds
 
 
 def _track_stage(work: _Batch, vo: VisualOdometry, K: torch.Tensor, timer: StageTimer) -> list[FrameResult]:
@@ -287,11 +286,22 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
     if mode == OverlapMode.full and not cuda:  # two busy threads share the cores: half of the torch threads each
         torch.set_num_threads(max(1, threads // 2))
 
-    refine_main, refine_tracker = _split_refine(refine) if mode == OverlapMode.full else (refine, None)
+    # overlap="full": the refinement cut between the two threads where it evens them out (inference/refine_split.py)
+    balance = RefineBalance(refine_stages(refine), batch_size) if mode == OverlapMode.full else None
 
-    def track(work: _Batch) -> tuple[_Batch, list[FrameResult]]:
-        _refine_stage(work, refine_tracker, timer)  # overlap="full": beside the next batch's networks
-        return work, _track_stage(work, vo, K, timer)
+    def track(work: _Batch, parts: list[RefinePart]) -> tuple[_Batch, list[FrameResult]]:
+        start = time.perf_counter()
+        _refine_parts(work, parts, timer)  # beside the next batch's networks
+        results = _track_stage(work, vo, K, timer)
+        work.busy_tracker = time.perf_counter() - start
+        return work, results
+
+    def collect(future: Future) -> tuple[_Batch, list[FrameResult]]:
+        with timer("wait_tracker"):
+            done, results = future.result()
+        n = len(done.idx)
+        balance.observe(done.busy_main / n, done.busy_tracker / n, done.unit_seconds)
+        return done, results
 
     depth_carry: torch.Tensor | None = None  # depth of the first frame of the next batch (= this batch's last)
     prev_img: torch.Tensor | None = None
@@ -302,23 +312,24 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
             imgs = loaded if prev_img is None else torch.cat([prev_img, loaded])
             prev_img = imgs[-1:]
             work, depth_carry = _pair_stage(imgs, idx, flow_src, depth_src, timer, two_views, depth_carry, finetuner)
-            _refine_stage(work, refine_main, timer)
             if tracker_pool is None:
-                yield from _records(*track(work))
+                _refine_stage(work, refine, timer)
+                yield from _records(work, _track_stage(work, vo, K, timer))
                 continue
+            main_parts, tracker_parts = balance.parts(len(idx))
+            work.busy_main = (work.share["t_flow"] + work.share["t_depth"]) * len(idx) + _refine_parts(
+                work, main_parts, timer)
             if pending is not None:
-                with timer("wait_tracker"):
-                    done = pending.result()
-                pending = None
-                yield from _records(*done)
-            pending = tracker_pool.submit(track, work)
+                done, pending = pending, None
+                yield from _records(*collect(done))
+            pending = tracker_pool.submit(track, work, tracker_parts)
         if pending is not None:
-            with timer("wait_tracker"):
-                done = pending.result()
-            pending = None
-            yield from _records(*done)
+            done, pending = pending, None
+            yield from _records(*collect(done))
     finally:
         loader.close()
         if tracker_pool is not None:
             tracker_pool.shutdown(wait=True, cancel_futures=True)
+            if balance.total:  # a refinement to cut
+                timer.refine_cut = {"units_per_batch": balance.total, "network_thread_units": balance.history}
         torch.set_num_threads(threads)

@@ -159,6 +159,11 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
                   seq.length, failed)
     extra = {**extra, "camera_height": camera_height_report(vo), "overlap": overlap.value,
              "torch_threads": torch.get_num_threads()}
+    if timer.refine_cut is not None:
+        cuts = timer.refine_cut["network_thread_units"]
+        extra["refine_cut"] = {"units_per_batch": timer.refine_cut["units_per_batch"],
+                               "network_thread_units_median": float(np.median(cuts)) if cuts else None,
+                               "network_thread_units_last": cuts[-1] if cuts else None}
     try:
         summary = finish_run(seq, np.stack(trajectory), diagnostics, timer, wall, out, align=cfg.align,
                              pose_file=pose_file, warn_fallback_rate=cfg.warn_fallback_rate, partial=partial,

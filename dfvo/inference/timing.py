@@ -50,6 +50,9 @@ class StageTimer:
         self.total: dict[str, float] = {}
         self.cpu_total: dict[str, float] = {}
         self.thread_cpu_total: dict[str, float] = {}
+        # overlap="full": where the refinement was cut between the two threads (dfvo.inference.refine_split): the
+        # units of a batch and the network thread's units of each batch; None for the other layouts
+        self.refine_cut: dict[str, object] | None = None
         self._lock = threading.Lock()
 
     @contextmanager

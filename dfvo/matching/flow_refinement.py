@@ -274,14 +274,31 @@ def _half(x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, size=((H + 1) // 2, (W + 1) // 2), mode="area")
 
 
-def _refine_pairs(frames: torch.Tensor, template: torch.Tensor, target: torch.Tensor, flow: torch.Tensor,
+Frames = slice | torch.Tensor  # which frames of a prepared stack: a range (a view, no copy) or (P,) indices
+
+
+def _refine_pairs(frames: torch.Tensor, groups: list[tuple[Frames, Frames]], flow: torch.Tensor,
                   cfg: FlowRefinementConfig) -> torch.Tensor:
-    """Refine the flows (P,2,H,W) from frame ``template[p]`` to frame ``target[p]`` of ``frames`` (N,C,H,W),
-    each frame prepared once per resolution: ``coarse_iterations`` at half resolution, then ``iterations``."""
+    """Refine the flows (P,2,H,W) of pairs of ``frames`` (N,C,H,W), each frame prepared once per resolution:
+    ``coarse_iterations`` at half resolution, then ``iterations``.
+
+    ``groups`` lists (template frames, target frames) selectors, one pair per flow row, in the order of ``flow``'s
+    rows; a range is a view of the prepared frames (an index tensor copies them; the numbers are the same)."""
     if cfg.method == RefinementMethod.symmetric:
         prepare, refine = _prepare_symmetric, _refine_symmetric
     else:
         prepare, refine = _templates, _refine_ic
+    rows, start = [], 0
+    for template, target in groups:
+        n = (template.stop - template.start) if isinstance(template, slice) else int(template.numel())
+        rows.append((template, target, slice(start, start + n)))
+        start += n
+
+    def refine_groups(prepared: object, u: torch.Tensor, finite: torch.Tensor, c: FlowRefinementConfig
+                      ) -> torch.Tensor:
+        parts = [refine(prepared, template, target, u[r], finite[r], c) for template, target, r in rows]
+        return parts[0] if len(parts) == 1 else torch.cat(parts)
+
     grey = to_grey(frames)
     finite = torch.isfinite(flow).all(1, keepdim=True)  # (P,1,H,W)
     u = torch.where(finite, flow, torch.zeros_like(flow)).to(torch.float32)
@@ -296,9 +313,9 @@ def _refine_pairs(frames: torch.Tensor, template: torch.Tensor, target: torch.Te
             finite_small = torch.ones_like(start[:, :1], dtype=torch.bool)
         else:
             finite_small = _half(finite.to(torch.float32)) > 0.999  # all of its pixels finite
-        refined = refine(prepare(grey_small, coarse), template, target, start, finite_small, coarse)
+        refined = refine_groups(prepare(grey_small, coarse), start, finite_small, coarse)
         u = u + F.interpolate(refined - start, size=(H, W), mode="bilinear", align_corners=False) / factor
-    u = refine(prepare(grey, cfg), template, target, u, finite, cfg)
+    u = refine_groups(prepare(grey, cfg), u, finite, cfg)
     return torch.where(finite, u.to(flow.dtype), flow)
 
 
@@ -321,8 +338,7 @@ def refine_flow(image1: torch.Tensor, image2: torch.Tensor, flow: torch.Tensor,
     if cfg.iterations == 0:
         return flow
     B = image1.shape[0]
-    pairs = torch.arange(B, device=flow.device)
-    return _refine_pairs(torch.cat([image1, image2]), pairs, pairs + B, flow, cfg)
+    return _refine_pairs(torch.cat([image1, image2]), [(slice(0, B), slice(B, 2 * B))], flow, cfg)
 
 
 def refine_forward_backward(images1: torch.Tensor, images2: torch.Tensor, flow_fwd: torch.Tensor,
@@ -345,9 +361,8 @@ def refine_forward_backward(images1: torch.Tensor, images2: torch.Tensor, flow_f
         return flow_fwd, flow_bwd
     if cfg.mode == RefinementMode.pyramid:
         return refine_pairs_pyramid(images1, images2, flow_fwd, flow_bwd, cfg.pyramid)
-    k = torch.arange(B, device=flow_fwd.device)
-    refined = _refine_pairs(torch.cat([images1, images2]), torch.cat([k, k + B]), torch.cat([k + B, k]),
-                            torch.cat([flow_fwd, flow_bwd]), cfg)
+    groups = [(slice(0, B), slice(B, 2 * B)), (slice(B, 2 * B), slice(0, B))]
+    refined = _refine_pairs(torch.cat([images1, images2]), groups, torch.cat([flow_fwd, flow_bwd]), cfg)
     if cfg.mode == RefinementMode.dense_pyramid:
         return refine_pairs_pyramid(images1, images2, refined[:B], refined[B:], cfg.pyramid)
     return refined[:B], refined[B:]
@@ -379,9 +394,8 @@ def refine_consecutive(images: torch.Tensor, flow_fwd: torch.Tensor, flow_bwd: t
         return flow_fwd, flow_bwd
     if cfg.mode == RefinementMode.pyramid:
         return refine_pyramid(images, flow_fwd, flow_bwd, cfg.pyramid)
-    k = torch.arange(B, device=flow_fwd.device)
-    refined = _refine_pairs(images, torch.cat([k, k + 1]), torch.cat([k + 1, k]), torch.cat([flow_fwd, flow_bwd]),
-                            cfg)
+    refined = _refine_pairs(images, [(slice(0, B), slice(1, B + 1)), (slice(1, B + 1), slice(0, B))],
+                            torch.cat([flow_fwd, flow_bwd]), cfg)
     if cfg.mode == RefinementMode.dense_pyramid:
         return refine_pyramid(images, refined[:B], refined[B:], cfg.pyramid)
     return refined[:B], refined[B:]

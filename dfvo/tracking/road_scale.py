@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
@@ -47,6 +48,18 @@ class RoadAlignment:
     reason: str | None = None
 
 
+@lru_cache(maxsize=4)
+def _pixel_rays(k: tuple[float, ...], height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(HW,2) float64 pixels (x, y) of an image and their rays (HW,3) ``K^-1 (x, y, 1)`` (z = 1) for the 9 entries
+    ``k`` of K; cached (the same camera every frame), never modified."""
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64),
+                          indexing="ij")
+    px = torch.stack([u.flatten(), v.flatten()], -1)
+    K_inv = torch.linalg.inv(torch.tensor(k, dtype=torch.float64).view(3, 3))
+    rays = torch.cat([px, torch.ones_like(px[:, :1])], -1) @ K_inv.T
+    return px, rays
+
+
 def road_patch(K: torch.Tensor, normal: torch.Tensor, height: float, image_hw: tuple[int, int],
                cfg: RoadAlignmentConfig, ahead: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Pixels of the road patch ahead and their block ids.
@@ -61,12 +74,8 @@ def road_patch(K: torch.Tensor, normal: torch.Tensor, height: float, image_hw: t
         ``cfg.max_depth + ahead`` metres ahead (camera z) and within ``cfg.half_width`` metres sideways, and (N,)
         long block ids: ``near/far`` (split at the middle depth) x ``left/centre/right`` (thirds of the width).
     """
-    H, W = image_hw
-    Kd, n = K.to(torch.float64), normal.to(torch.float64)
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-    px = torch.stack([u.flatten(), v.flatten()], -1)
-    rays = torch.cat([px, torch.ones_like(px[:, :1])], -1) @ torch.linalg.inv(Kd).T  # (HW,3), z = 1
-    den = rays @ n
+    px, rays = _pixel_rays(tuple(K.to(torch.float64).reshape(-1).tolist()), *image_hw)
+    den = rays @ normal.to(torch.float64)
     z = torch.where(den > 1e-9, height / den.clamp_min(1e-9), torch.full_like(den, float("inf")))
     x = rays[:, 0] * z
     z_lo, z_hi = cfg.min_depth + ahead, cfg.max_depth + ahead
@@ -82,30 +91,43 @@ def _cost_profiles(grey_prev: torch.Tensor, grey_cur: torch.Tensor, K: torch.Ten
     """(6,S) 1 - ZNCC of each block between image i's patch and image j sampled through the plane homography of
     each of the S heights ``exp(log_heights)`` (NaN for a block with too few pixels inside image j)."""
     H, W = grey_prev.shape[-2:]
-    Kd, Rd, td, n = K.to(torch.float64), R.to(torch.float64), t.to(torch.float64), normal.to(torch.float64)
+    f64 = torch.float64
+    Kd, Rd, td, n = K.to(f64), R.to(f64), t.to(f64), normal.to(f64)
     rays = torch.cat([pixels, torch.ones_like(pixels[:, :1])], -1) @ torch.linalg.inv(Kd).T  # (N,3)
-
-    def sample(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
-        grid = torch.stack([uv[..., 0] / (W - 1) * 2 - 1, uv[..., 1] / (H - 1) * 2 - 1], -1).to(img.dtype)
-        return F.grid_sample(img, grid[None], mode="bilinear", align_corners=True, padding_mode="border")[0, 0]
-
-    ref = sample(grey_prev, pixels[None])[0].to(torch.float64)  # (N,)
-    heights = log_heights.exp()
-    # x_j ~ K (R r + t (n.r) / h): the rotated rays and K t in float64, the (S,N,3) samples in float32 (1e-4 px)
-    rotated = (rays @ (Kd @ Rd).T).to(torch.float32)  # (N,3)
-    along = ((rays @ n)[None] / heights[:, None]).to(torch.float32)  # (S,N)
-    uvw = rotated[None] + along[..., None] * (Kd @ td).to(torch.float32)  # (S,N,3)
-    uv = uvw[..., :2] / uvw[..., 2:].clamp_min(1e-12)
-    moved = sample(grey_cur, uv).to(torch.float64)  # (S,N)
-    inside = ((uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= H - 1)
-              & (uvw[..., 2] > 0)).to(torch.float64)
+    # the patch's own pixels sit at integer positions: read, not interpolated; both images' intensities less the
+    # patch's mean, so that the float32 sums below cancel little (ZNCC does not depend on the offset)
+    ref = grey_prev[0, 0, pixels[:, 1].long(), pixels[:, 0].long()].to(torch.float32)  # (N,)
+    offset = ref.mean()
+    ref = ref - offset
+    # x_j ~ K (R r + t (n.r) / h), with K followed by the pixels -> grid_sample units map (align_corners=True), so
+    # the homogeneous division gives the sampling grid directly; the rotated rays and K t in float64, the (S,N)
+    # planes in float32 (1e-4 px)
+    to_grid = torch.tensor([[2.0 / (W - 1), 0.0, -1.0], [0.0, 2.0 / (H - 1), -1.0], [0.0, 0.0, 1.0]], dtype=f64)
+    Kg = to_grid @ Kd
+    rotated = (rays @ (Kg @ Rd).T).to(torch.float32)  # (N,3)
+    kt = (Kg @ td).tolist()
+    along = ((rays @ n)[None] / log_heights.exp()[:, None]).to(torch.float32)  # (S,N)
+    z = torch.add(rotated[:, 2], along, alpha=kt[2])  # (S,N)
+    inv_z = z.clamp_min(1e-12).reciprocal_()
+    grid = torch.stack([torch.add(rotated[:, 0], along, alpha=kt[0]).mul_(inv_z),
+                        torch.add(rotated[:, 1], along, alpha=kt[1]).mul_(inv_z)], -1)  # (S,N,2)
+    S = grid.shape[0]
+    planes = torch.empty((3, S, grid.shape[1]), dtype=torch.float32)  # w, w s, w s^2
+    torch.logical_and(grid.abs().amax(-1) <= 1.0, z > 0, out=planes[0])
+    moved = F.grid_sample(grey_cur, grid[None], mode="bilinear", align_corners=True,
+                          padding_mode="border")[0, 0].to(torch.float32).sub_(offset)  # (S,N)
+    torch.mul(planes[0], moved, out=planes[1])
+    torch.mul(planes[1], moved, out=planes[2])
     # per block, over the pixels inside image j: ZNCC = cov(a, s) / sqrt(var(a) var(s)), from the block sums of w,
-    # w a, w a^2, w s, w s^2, w a s (one matrix product with the block indicator instead of a masked copy per block)
-    onehot = F.one_hot(blocks, 6).to(torch.float64)  # (N,6)
-    size = onehot.sum(0)  # (6,)
-    sums = torch.stack([inside, inside * ref, inside * ref * ref, inside * moved, inside * moved * moved,
-                        inside * ref * moved]) @ onehot  # (6 sums, S, 6 blocks)
-    cnt, sa, saa, ss, sss, sas = sums.unbind(0)
+    # w a, w a^2, w s, w s^2, w a s: one matrix product of [w; w s; w s^2] (3S,N) with [1, a, a^2] x the block
+    # indicator (N,18); the covariances from them in float64
+    onehot = F.one_hot(blocks, 6).to(torch.float32)  # (N,6)
+    size = onehot.sum(0).to(f64)  # (6,)
+    weights = torch.cat([onehot, onehot * ref[:, None], onehot * (ref * ref)[:, None]], 1)  # (N,18)
+    sums = (planes.view(3 * S, -1) @ weights).view(3, S, 18).to(f64)
+    cnt, sa, saa = sums[0].split(6, -1)
+    ss, sas = sums[1, :, :6], sums[1, :, 6:12]
+    sss = sums[2, :, :6]
     den = cnt.clamp_min(1.0)
     cov, var_a, var_s = sas - sa * ss / den, saa - sa * sa / den, sss - ss * ss / den
     textured = (var_a > 1e-8 * den) & (var_s > 1e-8 * den)  # a flat patch (no texture, or rounding) matches nothing

@@ -16,7 +16,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-import dfvo.inference.loop as loop
+import dfvo.inference.refine_split as refine_split
 from dfvo.inference.config import OverlapMode
 from dfvo.inference.frames import FrameSequence
 from dfvo.inference.loop import resolve_overlap, track_sequence
@@ -195,22 +195,6 @@ def test_overlap_and_cuda_sync_are_infer_settings(tmp_path: Path, monkeypatch: p
         assert json.loads((tmp_path / overlap / "summary.json").read_text())["overlap"] == overlap
 
 
-def test_full_overlap_places_each_refinement_mode_on_one_side() -> None:
-    """``dense_pyramid`` is split (dense after the networks, pyramid before the tracker), ``pyramid`` alone runs
-    beside the networks, ``dense`` alone beside the tracker; no refinement, nothing."""
-    split = loop._split_refine
-    main, tracker = split(FlowRefinementConfig())
-    assert (main.mode.value, tracker.mode.value) == ("dense", "pyramid")
-    assert main.pyramid == tracker.pyramid and main.iterations == tracker.iterations
-    only = FlowRefinementConfig(mode="pyramid")
-    assert split(only) == (only, None)
-    dense = FlowRefinementConfig(mode="dense")
-    assert split(dense) == (None, dense)
-    assert split(None) == (None, None)
-    off = FlowRefinementConfig(iterations=0)
-    assert split(off) == (None, off)
-
-
 def test_auto_overlap_is_full_with_two_torch_threads_or_cuda_else_load() -> None:
     threads = torch.get_num_threads()
     try:
@@ -226,26 +210,31 @@ def test_auto_overlap_is_full_with_two_torch_threads_or_cuda_else_load() -> None
 
 def test_full_overlap_splits_the_refinement_between_the_two_threads(world_data: tuple,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    """With ``overlap="full"`` the dense refinement runs after the networks in the main thread and the pyramid one in
-    the tracker thread; the flows the tracker gets are those of one ``dense_pyramid`` call."""
+    """With ``overlap="full"`` the first batch's dense refinement runs after the networks in the main thread and its
+    pyramid refinement in the tracker thread (later batches wherever the balance puts the cut); the flows the tracker
+    gets are those of one ``dense_pyramid`` call; the timer keeps the cut of every batch."""
     seq, src = world_data
-    calls: list[tuple[str, str]] = []
-    real = loop.refine_consecutive
+    calls: list[tuple[str, str, int]] = []
+    real = refine_split.refine_consecutive
 
     def spy(images: torch.Tensor, fwd: torch.Tensor, bwd: torch.Tensor, cfg: FlowRefinementConfig):
-        calls.append((threading.current_thread().name, cfg.mode.value))
+        calls.append((threading.current_thread().name, cfg.mode.value, fwd.shape[0]))
         return real(images, fwd, bwd, cfg)
 
-    monkeypatch.setattr(loop, "refine_consecutive", spy)
-    out = _run(seq, src, 3, "full", FlowRefinementConfig())
+    monkeypatch.setattr(refine_split, "refine_consecutive", spy)
+    timer = StageTimer()
+    out = _run(seq, src, 3, "full", FlowRefinementConfig(), timer)
     batches = -(-(N - 1) // 3)
     main = threading.current_thread().name
-    assert calls.count((main, "dense")) == batches
-    assert sum(1 for name, mode in calls if name.startswith("dfvo-track") and mode == "pyramid") == batches
-    assert len(calls) == 2 * batches
-    images = torch.stack([seq.image(i) for i in range(4)])
-    fwd, bwd = real(images, torch.stack([src.fwd[i] for i in range(3)]), torch.stack([src.bwd[i] for i in range(3)]),
-                    FlowRefinementConfig())
-    assert torch.equal(torch.stack([r.flow_fwd for r in out[:3]]), fwd)
-    assert torch.equal(torch.stack([r.flow_bwd for r in out[:3]]), bwd)
+    assert [c for c in calls if c[0] == main][0] == (main, "dense", 3)
+    assert [c[1:] for c in calls if c[0].startswith("dfvo-track")][0] == ("pyramid", 3)
+    assert sum(n for _, mode, n in calls if mode == "dense") == N - 1  # each pair refined once by each stage
+    assert sum(n for _, mode, n in calls if mode == "pyramid") == N - 1
+    assert timer.refine_cut["units_per_batch"] == 6 and len(timer.refine_cut["network_thread_units"]) == batches
+    assert timer.refine_cut["network_thread_units"][0] == 3
+    images = torch.stack([seq.image(i) for i in range(N)])
+    fwd, bwd = real(images, torch.stack([src.fwd[i] for i in range(N - 1)]),
+                    torch.stack([src.bwd[i] for i in range(N - 1)]), FlowRefinementConfig())
+    assert torch.equal(torch.stack([r.flow_fwd for r in out]), fwd)
+    assert torch.equal(torch.stack([r.flow_bwd for r in out]), bwd)
     assert all(r.stage_seconds["t_refine"] > 0 for r in out)

@@ -214,7 +214,22 @@ def test_settings_are_a_structured_config_node() -> None:
                            OmegaConf.from_dotlist(["levels=2", "iterations=[5,1]", "backward_init=forward"]))
     cfg = OmegaConf.to_object(node)
     assert isinstance(cfg, PyramidRefinementConfig)
-    assert (cfg.levels, cfg.iterations, cfg.backward_iterations, cfg.backward_init) == (2, [5, 1], [5, 1], "forward")
+    # backward_iterations unset stays None: the backward refinement runs ``iterations``
+    assert (cfg.levels, cfg.iterations, cfg.backward_iterations, cfg.backward_init) == (2, [5, 1], None, "forward")
     bad = OmegaConf.merge(OmegaConf.structured(PyramidRefinementConfig), OmegaConf.from_dotlist(["levels=2"]))
     with pytest.raises(ValueError, match="iterations"):
         OmegaConf.to_object(bad)  # 3 counts for 2 levels
+
+
+def test_levels_and_iterations_alone_override_infers_pyramid() -> None:
+    """``flow.refine.pyramid.levels=2 flow.refine.pyramid.iterations=[3,2]`` on infer.py's command line is enough:
+    the backward refinement follows ``iterations`` (it once kept the default's three counts and refused)."""
+    from hydra import compose, initialize_config_module
+
+    from dfvo.inference.config import typed
+
+    with initialize_config_module("dfvo.conf.infer", version_base="1.3"):
+        cfg = typed(compose("infer", overrides=["flow.refine.pyramid.levels=2",
+                                                "flow.refine.pyramid.iterations=[3,2]"]))
+    pyr = cfg.flow.refine.pyramid
+    assert (pyr.levels, pyr.iterations, pyr.backward_iterations) == (2, [3, 2], None)

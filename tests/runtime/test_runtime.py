@@ -69,6 +69,26 @@ def test_runtime_flow_agrees_with_eager(kind: str, cache: Path, pair: tuple[torc
 
 
 @needs_checkpoints
+def test_openvino_runs_on_torchs_threads_of_the_moment(cache: Path, pair: tuple[torch.Tensor, torch.Tensor]) -> None:
+    """The engine is built before the loop; the loop's two-thread layout then gives the network thread one torch
+    thread: OpenVINO compiles for the thread count of each call (one compiled model per count), the same numbers."""
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        src = NetworkDepth(DEPTH, runtime=RuntimeConfig(kind="openvino", cache_dir=str(cache)))
+        engine = next(iter(src._runtime.engines.values()))
+        images = torch.cat(pair)
+        two = src(images)
+        torch.set_num_threads(1)
+        one = src(images)
+        counts = sorted(int(r.get_compiled_model().get_property("INFERENCE_NUM_THREADS"))
+                        for r in engine.compiled.values())
+        assert counts == [1, 2] and torch.allclose(one, two, rtol=1e-4)
+    finally:
+        torch.set_num_threads(threads)
+
+
+@needs_checkpoints
 @pytest.mark.parametrize("kind", ["onnxruntime", "openvino"])
 def test_runtime_depth_agrees_with_eager(kind: str, cache: Path, pair: tuple[torch.Tensor, torch.Tensor]) -> None:
     torch.set_num_threads(1)

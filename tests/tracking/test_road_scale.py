@@ -98,3 +98,45 @@ def test_camera_height_given_or_estimated() -> None:
 
     off = CameraHeight(None, CameraHeightConfig(estimate=False))
     assert not off.enabled and off.value is None
+
+
+def test_cost_profiles_equal_a_plain_per_block_zncc(straight: SyntheticWorld) -> None:
+    """The block sums of ``_cost_profiles`` (one float32 matrix product over the patch, intensities less their mean)
+    against a plain float64 computation: each block's pixels inside image j, the plane homography applied to each
+    pixel, bilinear sampling by hand, ``numpy.corrcoef``."""
+    import numpy as np
+
+    from dfvo.tracking.road_scale import _cost_profiles
+
+    p = _pair(straight, 2)
+    cfg = RoadAlignmentConfig()
+    pixels, blocks = road_patch(p["K"], p["normal"], p["height"], (192, 640), cfg, 1.0)
+    truth = p["height"] / p["length"]
+    log_h = torch.linspace(math.log(truth) - 0.3, math.log(truth) + 0.3, 7, dtype=torch.float64)
+    got = _cost_profiles(p["grey"][:1], p["grey"][1:], p["K"].float(), p["R"].float(), p["t"].float(),
+                         p["normal"].float(), pixels, blocks, log_h).numpy()
+
+    img_i, img_j = p["grey"][0, 0].double().numpy(), p["grey"][1, 0].double().numpy()
+    K, R, t, n = (x.double().numpy() for x in (p["K"], p["R"], p["t"], p["normal"]))
+    H_img, W_img = img_j.shape
+    px = pixels.numpy()
+    ref = img_i[px[:, 1].astype(int), px[:, 0].astype(int)]
+    b = blocks.numpy()
+    for s, lh in enumerate(log_h.tolist()):
+        Hm = K @ (R + np.outer(t, n) / math.exp(lh)) @ np.linalg.inv(K)
+        q = np.c_[px, np.ones(len(px))] @ Hm.T
+        u, v = q[:, 0] / q[:, 2], q[:, 1] / q[:, 2]
+        inside = (u >= 0) & (u <= W_img - 1) & (v >= 0) & (v <= H_img - 1) & (q[:, 2] > 0)
+        uc, vc = np.clip(u, 0, W_img - 1), np.clip(v, 0, H_img - 1)
+        u0, v0 = np.minimum(np.floor(uc).astype(int), W_img - 2), np.minimum(np.floor(vc).astype(int), H_img - 2)
+        fu, fv = uc - u0, vc - v0
+        moved = ((1 - fu) * (1 - fv) * img_j[v0, u0] + fu * (1 - fv) * img_j[v0, u0 + 1]
+                 + (1 - fu) * fv * img_j[v0 + 1, u0] + fu * fv * img_j[v0 + 1, u0 + 1])
+        for k in range(6):
+            sel = (b == k) & inside
+            if (b == k).sum() < 50 or sel.sum() < 0.5 * (b == k).sum():
+                assert np.isnan(got[k, s])
+                continue
+            want = 1.0 - np.corrcoef(ref[sel], moved[sel])[0, 1]
+            assert abs(got[k, s] - want) < 1e-4, (k, s, got[k, s], want)
+    assert np.isfinite(got).sum() >= 6 * 5  # most blocks and heights were compared, not skipped

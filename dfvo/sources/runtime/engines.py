@@ -110,7 +110,7 @@ class OpenVinoEngine:
 
     name = "openvino"
 
-    def __init__(self, path: str | Path, threads: int, inference_precision: str = "f32",
+    def __init__(self, path: str | Path, threads: int | None, inference_precision: str = "f32",
                  compiled_cache: str | Path | None = None) -> None:
         import openvino as ov
 
@@ -118,17 +118,22 @@ class OpenVinoEngine:
         if compiled_cache is not None:
             self.core.set_property({"CACHE_DIR": str(compiled_cache)})
         self.model = self.core.read_model(str(path))
-        self.config = {"INFERENCE_NUM_THREADS": max(1, int(threads)), "PERFORMANCE_HINT": "LATENCY",
-                       "NUM_STREAMS": 1, "INFERENCE_PRECISION_HINT": inference_precision}
+        self.threads = threads
+        self.config = {"PERFORMANCE_HINT": "LATENCY", "NUM_STREAMS": 1,
+                       "INFERENCE_PRECISION_HINT": inference_precision}
         self.compiled: dict[tuple, object] = {}
 
     def _request(self, shapes: tuple) -> object:
-        request = self.compiled.get(shapes)
+        # threads None: torch's at the call, so that the loop's two-thread layout (one torch thread in the network
+        # thread while the tracker thread works: dfvo/inference/loop.py) runs the network on one core too
+        threads = max(1, int(torch.get_num_threads() if self.threads is None else self.threads))
+        request = self.compiled.get((shapes, threads))
         if request is None:
             model = self.model.clone()
             model.reshape({i: list(s) for i, s in enumerate(shapes)})
-            request = self.core.compile_model(model, "CPU", self.config).create_infer_request()
-            self.compiled[shapes] = request
+            config = {**self.config, "INFERENCE_NUM_THREADS": threads}
+            request = self.core.compile_model(model, "CPU", config).create_infer_request()
+            self.compiled[(shapes, threads)] = request
         return request
 
     def __call__(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -141,11 +146,10 @@ class OpenVinoEngine:
 
 def build_engine(kind: str, path: str | Path, threads: int | None = None, precision: str = "fp32") -> Engine:
     """The engine of runtime ``kind`` (``onnxruntime`` | ``openvino``) for the ONNX model ``path``; ``threads``
-    None: torch's current number of threads; ``precision`` ``fp32`` or ``bf16`` (openvino; see
-    :func:`check_precision`)."""
-    threads = torch.get_num_threads() if threads is None else threads
+    None: torch's number of threads (ONNX Runtime: now; OpenVINO: at each call); ``precision`` ``fp32`` or ``bf16``
+    (openvino; see :func:`check_precision`)."""
     if kind == "onnxruntime":
-        return OnnxRuntimeEngine(path, threads)
+        return OnnxRuntimeEngine(path, torch.get_num_threads() if threads is None else threads)
     if kind == "openvino":
         return OpenVinoEngine(path, threads, PRECISIONS[precision], Path(path).parent / "openvino_compiled")
     raise ValueError(f"runtime {kind!r}; expected 'onnxruntime' or 'openvino'")

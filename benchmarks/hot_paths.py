@@ -1,0 +1,88 @@
+"""CPU time of the loop's hot paths in isolation, on real KITTI frames: the dense flow refinement, the pyramid
+refinement at its candidates, and one road-alignment search (41 plane heights over the road patch).
+
+Each is run once to warm up, then ``--repeats`` times interleaved with the others (a shared machine's load falls on
+all of them alike); prints one JSON object with the minimum and median milliseconds per frame pair (dense, pyramid:
+a batch of ``--pairs`` pairs) or per search (road). The functions it calls have kept their signatures, so the same
+file times an older commit too (``git worktree add /tmp/old COMMIT``, then run this file from there):
+
+    OMP_NUM_THREADS=1 python benchmarks/hot_paths.py --root ../shared/data/kitti_odom --threads 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from kornia.color import rgb_to_grayscale
+
+from dfvo.inference.config import typed
+from dfvo.inference.frames import build_sequence
+from dfvo.matching.flow_refinement import FlowRefinementConfig, RefinementMode, refine_consecutive
+from dfvo.matching.pyramid_refinement import refine_pyramid
+from dfvo.sources import build_flow_source
+from dfvo.tracking import road_scale
+from dfvo.tracking.config import RoadAlignmentConfig
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--root", default=str(REPO.parent / "shared" / "data" / "kitti_odom"))
+    p.add_argument("--seq", default="07")
+    p.add_argument("--pairs", type=int, default=4)
+    p.add_argument("--repeats", type=int, default=10)
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "infer"), version_base="1.3"):
+        cfg = typed(compose("infer", overrides=["data=kitti_odom", f"data.root={args.root}", f"seq={args.seq}",
+                                                f"data.end={args.pairs + 1}"]))
+    seq = build_sequence(cfg.data, cfg.seq, cfg.img_res)
+    images = torch.stack([seq.image(i) for i in range(args.pairs + 1)])
+    fwd, bwd = build_flow_source(cfg.flow, None, "cpu")(images[:-1], images[1:])
+    refine: FlowRefinementConfig = cfg.flow.refine
+    dense_cfg = FlowRefinementConfig(**{**refine.__dict__, "mode": RefinementMode.dense})
+    dense_fwd, dense_bwd = refine_consecutive(images, fwd, bwd, dense_cfg)
+
+    grey = rgb_to_grayscale(images[:2].float())
+    K = seq.K.to(torch.float32)
+    normal = torch.tensor([0.0, 1.0, 0.0])
+    R, t = torch.eye(3), torch.tensor([0.0, 0.0, 1.0])
+    road_cfg = RoadAlignmentConfig()
+    pixels, blocks = road_scale.road_patch(K, normal, 1.65, tuple(grey.shape[-2:]), road_cfg, 1.0)
+    centre = math.log(1.65 / 1.0)
+    heights = torch.linspace(centre - math.log(road_cfg.span), centre + math.log(road_cfg.span),
+                             2 * road_cfg.steps - 1, dtype=torch.float64)
+
+    paths = {
+        "dense_refinement": (lambda: refine_consecutive(images, fwd, bwd, dense_cfg), args.pairs),
+        "pyramid_refinement": (lambda: refine_pyramid(images, dense_fwd, dense_bwd, refine.pyramid), args.pairs),
+        "road_search": (lambda: road_scale._cost_profiles(grey[:1], grey[1:], K, R, t, normal, pixels, blocks,
+                                                          heights), 1),
+    }
+    times: dict[str, list[float]] = {name: [] for name in paths}
+    for name, (fn, _) in paths.items():
+        fn()
+    for _ in range(args.repeats):
+        for name, (fn, per) in paths.items():
+            start = time.process_time()
+            fn()
+            times[name].append(1000.0 * (time.process_time() - start) / per)
+    print(json.dumps({
+        "threads": torch.get_num_threads(), "pairs": args.pairs, "size": list(images.shape[-2:]),
+        "road_patch_pixels": int(pixels.shape[0]), "road_heights": int(heights.numel()),
+        **{name: {"cpu_ms_min": round(min(v), 2), "cpu_ms_median": round(statistics.median(v), 2),
+                  "per": "pair" if paths[name][1] > 1 else "search"} for name, v in times.items()},
+    }))
+
+
+if __name__ == "__main__":
+    main()
