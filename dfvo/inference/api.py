@@ -118,7 +118,7 @@ class Odometry:
         self.device = resolve_device(self.cfg.device)
         self.sources = build_sources(self.cfg, None, self.device)
         self.timer = StageTimer()
-        self.vo = VisualOdometry(self.cfg.tracker)
+        self.vo = VisualOdometry(self.cfg.tracker, self.cfg.flow.refine.pyramid)
         self._stepper: Any = None
         self._prep: Any = None
         self.native_size: tuple[int, int] | None = None

@@ -102,7 +102,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
          observers: list[Any], out: Path, device: str, extra: dict[str, Any]) -> dict[str, Any]:
     from tqdm import tqdm
 
-    vo = VisualOdometry(cfg.tracker)
+    vo = VisualOdometry(cfg.tracker, cfg.flow.refine.pyramid)
     timer = StageTimer(cuda_sync=cfg.cuda_sync)
     pose_file = out / f"{seq.name}.txt"
     if cfg.pose_format == PoseFormat.tum and seq.timestamps is None:

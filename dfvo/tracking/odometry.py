@@ -39,6 +39,7 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from dfvo.geometry.se3 import pose_from_rt, se3_inverse
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac
 from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
 from dfvo.matching.selection import select_correspondences
 from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
 from dfvo.tracking.covariance import length_log_variance, step_covariance
@@ -127,10 +128,14 @@ class VisualOdometry:
 
     Args:
         cfg: :class:`TrackerConfig` (official defaults when omitted).
+        point_refinement: the pyramidal Lucas–Kanade settings of ``tracker.scale_filter.refine_points`` (infer.py
+            passes the flow refinement's, ``flow.refine.pyramid``); None: their defaults.
     """
 
-    def __init__(self, cfg: TrackerConfig | None = None) -> None:
+    def __init__(self, cfg: TrackerConfig | None = None,
+                 point_refinement: PyramidRefinementConfig | None = None) -> None:
         self.cfg = cfg if cfg is not None else TrackerConfig()
+        self.point_refinement = point_refinement
         self.reset()
 
     def reset(self) -> None:
@@ -139,8 +144,9 @@ class VisualOdometry:
         self.T_w = torch.eye(4, dtype=torch.float64)
         self.last_motion = torch.eye(4, dtype=torch.float64)
         self.last_scale = 0.0
-        if getattr(self, "fusion", None) is None or self.fusion.cfg is not self.cfg:
-            self.fusion = ScaleFusion(self.cfg)
+        if (getattr(self, "fusion", None) is None or self.fusion.cfg is not self.cfg
+                or self.fusion.point_refinement is not self.point_refinement):
+            self.fusion = ScaleFusion(self.cfg, self.point_refinement)
         self.fusion.reset()
 
     # ------------------------------------------------------------------------------------------ public

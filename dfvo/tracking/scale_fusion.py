@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from dfvo.geometry.two_view import normalise_points
+from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
 from dfvo.tracking.camera_height import CameraHeight
 from dfvo.tracking.config import RoadPoints, TrackerConfig
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
@@ -93,8 +94,9 @@ def depth_road_height(depth: torch.Tensor, K: torch.Tensor, cfg: TrackerConfig,
 class ScaleFusion:
     """Scale observations and the state carried between frames (see the module docstring)."""
 
-    def __init__(self, cfg: TrackerConfig) -> None:
+    def __init__(self, cfg: TrackerConfig, point_refinement: PyramidRefinementConfig | None = None) -> None:
         self.cfg = cfg
+        self.point_refinement = point_refinement  # the pyramid LK of ``scale_filter.refine_points`` (None: defaults)
         sc, sf = cfg.scale, cfg.scale_filter
         self.camera_height = CameraHeight(sc.camera_height, cfg.camera_height)
         self.filter = ScaleFilter.from_config(sf, temporal=sc.temporal, height_log_std=cfg.road_plane.log_std)
@@ -133,7 +135,8 @@ class ScaleFusion:
         if cfg.scale.temporal:
             rel = relative_scale(self.middle, flow, inconsistency, K, R, t, max_inconsistency=sf.max_inconsistency,
                                  min_parallax_deg=sf.min_parallax_deg, min_points=sf.min_points,
-                                 grey_pair=grey_pair if sf.refine_points else None)
+                                 grey_pair=grey_pair if sf.refine_points else None,
+                                 point_refinement=self.point_refinement)
             temporal_scale, temporal_std = rel.scale, rel.log_std
             if temporal_std is not None and sf.temporal_rotation_log_std > 0:
                 # the relative scale re-triangulates the previous pair's points with this pair's pose: its error

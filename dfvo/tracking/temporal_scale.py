@@ -89,16 +89,17 @@ class RelativeScale:
 
 
 def _refined_motion(pts_j: torch.Tensor, flow: torch.Tensor, grey_pair: tuple[torch.Tensor, torch.Tensor],
-                    ok: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                    ok: torch.Tensor, cfg: PyramidRefinementConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The points' positions in image k and their forward-backward inconsistency (px), both from the pyramidal
     Lucas–Kanade of :mod:`dfvo.matching.pyramid_refinement` at the points themselves (forward from the dense flow,
-    backward from minus the result), not from the dense fields: (M,2) float64, (M,) float64 (inf where it failed)."""
-    cfg = PyramidRefinementConfig()
+    backward from minus the result; ``cfg`` its settings, None: the defaults), not from the dense fields: (M,2)
+    float64, (M,) float64 (inf where it failed)."""
+    cfg = cfg or PyramidRefinementConfig()
     pyramid = build_pyramid(torch.cat([grey_pair[0], grey_pair[1]]).to(torch.float32), cfg.levels, cfg.sigma)
     j, k = torch.zeros(1, dtype=torch.long), torch.ones(1, dtype=torch.long)
     p = pts_j.to(torch.float32)[None]
     u, ok_f = lucas_kanade(pyramid, j, k, p, _sample(flow, pts_j).T.to(torch.float32)[None], ok[None], cfg)
-    v, ok_b = lucas_kanade(pyramid, k, j, p + u, -u, ok_f, cfg)
+    v, ok_b = lucas_kanade(pyramid, k, j, p + u, -u, ok_f, cfg, cfg.backward_iterations)
     incon = torch.where(ok_f & ok_b, (u + v).norm(dim=-1), torch.full_like(u[..., 0], float("inf")))
     return pts_j + u[0].to(torch.float64), incon[0].to(torch.float64)
 
@@ -107,7 +108,8 @@ def relative_scale(prev: MiddleDepths | None, flow: torch.Tensor, inconsistency:
                    R: torch.Tensor, t: torch.Tensor, max_inconsistency: float = ScaleFilterConfig.max_inconsistency,
                    min_parallax_deg: float = ScaleFilterConfig.min_parallax_deg,
                    min_points: int = ScaleFilterConfig.min_points,
-                   grey_pair: tuple[torch.Tensor, torch.Tensor] | None = None) -> RelativeScale:
+                   grey_pair: tuple[torch.Tensor, torch.Tensor] | None = None,
+                   point_refinement: PyramidRefinementConfig | None = None) -> RelativeScale:
     """Metric length of the unit translation ``t`` of pair (j, k) from the depths ``prev`` of pair (i, j).
 
     The points ``prev.pts`` of image j are carried to image k by ``flow`` (j->k, sampled bilinearly); those whose
@@ -116,7 +118,8 @@ def relative_scale(prev: MiddleDepths | None, flow: torch.Tensor, inconsistency:
     ``median(prev.depth / z_unit)`` (in log space, with a 3-MAD trim). With ``grey_pair`` (images j and k, (1,1,H,W)
     each) the points' motion and inconsistency come from a photometric refinement at the points themselves
     (:func:`_refined_motion`) instead of the dense flow and inconsistency fields: for a flow refined only at its own
-    candidates (``flow.refine.mode=pyramid``), where the dense flow at these points is the network's raw flow.
+    candidates (``flow.refine.mode=pyramid``), where the dense flow at these points is the network's raw flow;
+    ``point_refinement`` are its settings (the flow refinement's own, ``flow.refine.pyramid``; None: the defaults).
 
     Args:
         prev: the previous pair's middle-frame depths (None: no previous pair; the result is empty).
@@ -133,7 +136,7 @@ def relative_scale(prev: MiddleDepths | None, flow: torch.Tensor, inconsistency:
         pts_k = pts_j + _sample(flow, pts_j).T
         incon = _sample(inconsistency.reshape(1, 1, H, W), pts_j)[0]
     else:
-        pts_k, incon = _refined_motion(pts_j, flow, grey_pair, inside_j)
+        pts_k, incon = _refined_motion(pts_j, flow, grey_pair, inside_j, point_refinement)
     inside_k = (pts_k[:, 0] >= 0) & (pts_k[:, 0] <= W - 1) & (pts_k[:, 1] >= 0) & (pts_k[:, 1] <= H - 1)
     Kd, Rd, td = K.reshape(1, 3, 3).to(torch.float64), R.to(torch.float64), t.to(torch.float64)
     z_j, _, front = triangulated_depths(Rd, td, Kd, pts_j[None], pts_k[None])

@@ -142,6 +142,38 @@ def test_relative_scale_with_refined_points_recovers_an_underestimated_flow(stra
         assert dense.scale is not None and abs(dense.scale / L - short) < 0.02  # the flow's error, passed on
         refined = relative_scale(*args, grey_pair=grey)
         assert refined.num_points > 200 and abs(refined.scale / L - 1) < 0.01, (refined, L)
+        # its settings are the caller's (infer.py: flow.refine.pyramid): no iterations leaves the flow's error
+        idle = PyramidRefinementConfig(levels=1, iterations=[0])
+        unrefined = relative_scale(*args, grey_pair=grey, point_refinement=idle)
+        assert unrefined.scale is not None and abs(unrefined.scale / L - short) < 0.02
+
+
+def test_the_point_refinement_settings_reach_the_scale_fusion(monkeypatch: pytest.MonkeyPatch, tmp_path):
+    """``VisualOdometry(cfg, point_refinement)`` hands them to its scale fusion (also after ``reset``), and
+    infer.py's run passes ``flow.refine.pyramid``."""
+    from hydra import compose, initialize_config_module
+
+    import dfvo.inference.pipeline as pipeline
+    from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
+
+    settings = PyramidRefinementConfig(levels=2, iterations=[3, 2])
+    vo = VisualOdometry(TrackerConfig(), settings)
+    vo.reset()
+    assert vo.fusion.point_refinement is settings
+    seen = []
+
+    class Spy(VisualOdometry):
+        def __init__(self, cfg, point_refinement=None):
+            seen.append(point_refinement)
+            super().__init__(cfg, point_refinement)
+
+    monkeypatch.setattr(pipeline, "VisualOdometry", Spy)
+    with initialize_config_module("dfvo.conf.infer", version_base="1.3"):
+        cfg = compose("infer", overrides=["data.num_frames=3", "img_res.height=64", "img_res.width=96",
+                                          "flow=oracle", "depth=oracle", "progress=false", f"out_dir={tmp_path}",
+                                          "flow.refine.pyramid.levels=2", "flow.refine.pyramid.iterations=[3,2]"])
+    pipeline.run_inference(cfg)
+    assert [(s.levels, s.iterations) for s in seen] == [(2, [3, 2])]
 
 
 def test_temporal_filter_keeps_the_scale_through_the_network_s_frame_noise(straight):
