@@ -96,7 +96,7 @@ class _Batch:
     depth: torch.Tensor
     depth_next: torch.Tensor | None
     share: dict[str, float]
-    busy_main: float = 0.0  # seconds: the networks and the network thread's refinement (overlap="full")
+    busy_main: float = 0.0  # seconds: the network thread's work on the batch (overlap="full")
     busy_tracker: float = 0.0  # seconds: the tracker thread's refinement and the tracker
     unit_seconds: dict[int, float] = field(default_factory=dict)  # per pair of each refinement stage that ran
 
@@ -181,16 +181,15 @@ def _refine_stage(work: _Batch, refine: FlowRefinementConfig | None, timer: Stag
     work.share["t_refine"] += lap.seconds / len(work.idx)
 
 
-def _refine_parts(work: _Batch, parts: list[RefinePart], timer: StageTimer) -> float:
+def _refine_parts(work: _Batch, parts: list[RefinePart], timer: StageTimer) -> None:
     """Refine the pairs of ``parts`` of the batch in place (:func:`dfvo.inference.refine_split.run_parts`); adds
-    the seconds to the batch's ``t_refine`` share and returns them."""
+    the seconds to the batch's ``t_refine`` share and each stage's seconds per pair to ``unit_seconds``."""
     if not parts:
-        return 0.0
+        return
     with timer("refine") as lap:
         work.flow_fwd, work.flow_bwd, per_pair = run_parts(parts, work.imgs, work.flow_fwd, work.flow_bwd)
     work.share["t_refine"] += lap.seconds / len(work.idx)
     work.unit_seconds.update(per_pair)
-    return lap.seconds
 
 
 def _track_stage(work: _Batch, vo: VisualOdometry, K: torch.Tensor, timer: StageTimer) -> list[FrameResult]:
@@ -311,14 +310,15 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
             loaded = loader.get(b).to(device, non_blocking=True)
             imgs = loaded if prev_img is None else torch.cat([prev_img, loaded])
             prev_img = imgs[-1:]
+            start = time.perf_counter()
             work, depth_carry = _pair_stage(imgs, idx, flow_src, depth_src, timer, two_views, depth_carry, finetuner)
             if tracker_pool is None:
                 _refine_stage(work, refine, timer)
                 yield from _records(work, _track_stage(work, vo, K, timer))
                 continue
             main_parts, tracker_parts = balance.parts(len(idx))
-            work.busy_main = (work.share["t_flow"] + work.share["t_depth"]) * len(idx) + _refine_parts(
-                work, main_parts, timer)
+            _refine_parts(work, main_parts, timer)
+            work.busy_main = time.perf_counter() - start  # networks (and online finetuning) and its refinement
             if pending is not None:
                 done, pending = pending, None
                 yield from _records(*collect(done))

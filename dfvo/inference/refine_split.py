@@ -131,7 +131,7 @@ class RefineBalance:
         gap = (self.tracker_seconds - self.main_seconds) * self.batch_size  # seconds per batch
         if gap > 0 and self.units < self.total:
             unit = self.unit_seconds.get(self.units // self.batch_size)
-            if unit is not None and gap > unit:  # moving it: the gap shrinks by 2 units, so it gets smaller
+            if unit is not None and gap > unit:  # moving a unit shrinks the gap by twice its time: helps if gap > it
                 self.units += 1
                 self._moved(unit)
         elif gap < 0 and self.units > 0:
