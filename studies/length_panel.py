@@ -195,8 +195,8 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"--cases: unknown {unknown}; expected some of {list(all_cases)}")
     configs: dict[str, list[str]] = {}
-    # NAME:override,override entries are separated by ";" (a single one may end with ";"); plain names by ","
-    for spec in filter(None, args.configs.split(";" if ";" in args.configs else ",")):
+    # NAME:override,override entries are separated by ";"; plain names by ","
+    for spec in filter(None, args.configs.split(";" if ";" in args.configs or ":" in args.configs else ",")):
         name, sep, overrides = spec.partition(":")
         if sep:
             configs[name] = [o for o in re.split(r",(?![^\[]*\])", overrides) if o]  # not inside [a,b]
