@@ -77,6 +77,21 @@ def cases(args: argparse.Namespace) -> dict[str, list[str]]:
     return out
 
 
+def parse_configs(text: str) -> dict[str, list[str]]:
+    """``--configs``: names of :data:`CONFIGS` separated by ``,``, or ``NAME:override,override`` entries separated by
+    ``;`` (also a single one); an override's own list value ``key=[a,b]`` stays whole. Name -> infer.py overrides."""
+    configs: dict[str, list[str]] = {}
+    for spec in filter(None, text.split(";" if ";" in text or ":" in text else ",")):
+        name, sep, overrides = spec.partition(":")
+        if sep:
+            configs[name] = [o for o in re.split(r",(?![^\[]*\])", overrides) if o]  # not inside [a,b]
+        elif name in CONFIGS:
+            configs[name] = CONFIGS[name]
+        else:
+            raise SystemExit(f"--configs: unknown {name!r}; expected one of {list(CONFIGS)} or NAME:override,...")
+    return configs
+
+
 def make_video(kitti_root: str, path: str) -> None:
     """KITTI 07's left images as an H.264 file (PyAV, crf 18, 10 fps): what a user's dash camera would record."""
     import av
@@ -194,16 +209,7 @@ def main() -> None:
     unknown = [n for n in names if n not in all_cases]
     if unknown:
         raise SystemExit(f"--cases: unknown {unknown}; expected some of {list(all_cases)}")
-    configs: dict[str, list[str]] = {}
-    # NAME:override,override entries are separated by ";"; plain names by ","
-    for spec in filter(None, args.configs.split(";" if ";" in args.configs or ":" in args.configs else ",")):
-        name, sep, overrides = spec.partition(":")
-        if sep:
-            configs[name] = [o for o in re.split(r",(?![^\[]*\])", overrides) if o]  # not inside [a,b]
-        elif name in CONFIGS:
-            configs[name] = CONFIGS[name]
-        else:
-            raise SystemExit(f"--configs: unknown {name!r}; expected one of {list(CONFIGS)} or NAME:override,...")
+    configs = parse_configs(args.configs)
     path = out / "panel.json"
     result: dict[str, Any] = json.loads(path.read_text()) if path.exists() else {"runs": {}}
     result.update({"machine": f"{platform.machine()}, {os.cpu_count()} cores, {args.threads} torch threads",

@@ -66,3 +66,17 @@ def test_true_flow_lies_on_the_epipolar_lines_of_the_true_pose():
     sideways[:3, 3] = np.linalg.norm(sideways[:3, 3]) * np.array([1.0, 0.0, 0.0])  # the camera moving right instead
     wrong = torch.from_numpy(fundamental_from_pose(sideways, K))[None, None]
     assert float(sampson_sq(wrong, x0[None], x1[None])[0, 0].sqrt().median()) > 0.2  # another pose does not fit
+
+
+def test_length_panel_configs_keep_list_values_whole() -> None:
+    """``studies/length_panel.py --configs``: ``NAME:a=[1,2],b=3`` is two overrides, one entry needs no ``;``, names
+    of its table are split on ``,``, an unknown name is one clear error."""
+    import pytest
+
+    from studies.length_panel import CONFIGS, parse_configs
+
+    assert parse_configs("lv2:x.levels=2,x.iterations=[3,2]") == {"lv2": ["x.levels=2", "x.iterations=[3,2]"]}
+    assert parse_configs("a:k=[1,2,3];b:m=1,n=[4,5]") == {"a": ["k=[1,2,3]"], "b": ["m=1", "n=[4,5]"]}
+    assert parse_configs("default,flow=dis") == {"default": CONFIGS["default"], "flow=dis": CONFIGS["flow=dis"]}
+    with pytest.raises(SystemExit, match="unknown 'nope'"):
+        parse_configs("default,nope")
