@@ -11,7 +11,8 @@ with it (every preparation is per frame, every update per pair), so any cut give
 :class:`RefineBalance` moves the cut by one unit after a batch whenever that brings the two threads' busy times
 (smoothed over batches) closer: the network thread's is the networks plus its refinement, the tracker thread's its
 refinement plus the tracker. How long the parts take differs by machine (a faster network runtime, a CPU whose
-cores slow each other down) and by sequence, so the cut is measured, not configured.
+cores slow each other down) and by sequence, so the cut is measured, not configured. (On CUDA the times are the host's
+unless ``cuda_sync=true``: the cut then evens out the host's work; the poses are the same either way.)
 
 Convention:
     Images (B+1,3,H,W) of the batch's frames in order; flows (B,2,H,W), ``flow_fwd[k]`` k->k+1 on frame k,
