@@ -111,6 +111,7 @@ class RefineBalance:
         self.main_seconds: float | None = None
         self.tracker_seconds: float | None = None
         self.history: list[int] = []
+        self.observed = 0
 
     def parts(self, pairs: int) -> tuple[list[RefinePart], list[RefinePart]]:
         """The parts of a batch of ``pairs`` pairs (a last, shorter batch keeps the cut in proportion)."""
@@ -120,7 +121,11 @@ class RefineBalance:
 
     def observe(self, main_seconds: float, tracker_seconds: float, unit_seconds: dict[int, float]) -> None:
         """One batch's busy seconds per pair in the network thread and in the tracker thread, and the seconds per
-        pair of each refinement stage it measured; moves the cut by one unit when that evens the threads out."""
+        pair of each refinement stage it measured; moves the cut by one unit when that evens the threads out. The
+        first batch is not used: it carries one-time costs (a runtime compiling its model, first allocations)."""
+        self.observed += 1
+        if self.observed == 1:
+            return
         for key, sec in unit_seconds.items():
             old = self.unit_seconds.get(key)
             self.unit_seconds[key] = sec if old is None else old + self.smoothing * (sec - old)

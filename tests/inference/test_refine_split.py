@@ -108,6 +108,16 @@ def test_the_balance_moves_the_cut_to_where_the_threads_even_out() -> None:
     assert min(history) >= 0 and max(history) <= 8  # only cuts that exist
 
 
+def test_the_first_batch_does_not_move_the_cut() -> None:
+    """The first batch's times carry one-time costs (an OpenVINO compile takes seconds): they are not used."""
+    balance = RefineBalance(refine_stages(FlowRefinementConfig()), 4)
+    balance.observe(5.0, 0.1, {0: 0.04, 1: 0.05})  # a compile in the network thread
+    assert balance.units == 4 and balance.main_seconds is None
+    balance.observe(0.10, 0.10, {0: 0.04, 1: 0.05})
+    balance.observe(0.10, 0.10, {0: 0.04, 1: 0.05})
+    assert balance.units == 4
+
+
 def test_each_mode_starts_where_it_ran_before_the_balance_existed() -> None:
     assert RefineBalance(refine_stages(FlowRefinementConfig()), 4).units == 4  # dense | pyramid
     assert RefineBalance(refine_stages(FlowRefinementConfig(mode="pyramid")), 4).units == 4  # beside the networks
