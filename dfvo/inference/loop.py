@@ -38,9 +38,9 @@ import torch
 
 from dfvo.data.sequence import FrameSequence
 from dfvo.inference.config import InferConfig, OverlapMode
-from dfvo.inference.refine_split import RefineBalance, RefinePart, refine_stages, run_parts
+from dfvo.inference.refine_split import RefineBalance, RefinePart, refine_stages, run_parts, whole_refinement
 from dfvo.inference.timing import StageTimer
-from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_consecutive
+from dfvo.matching.flow_refinement import FlowRefinementConfig
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.tracking import FrameResult, VisualOdometry
 from dfvo.tracking.config import TrackerMode
@@ -171,19 +171,10 @@ def _pair_stage(imgs: torch.Tensor, idx: list[int], flow_src: FlowSource, depth_
     return _Batch(idx, imgs, flow_fwd, flow_bwd, depth, depth_next, share), depth_carry
 
 
-def _refine_stage(work: _Batch, refine: FlowRefinementConfig | None, timer: StageTimer) -> None:
-    """Refine the batch's flows photometrically in place (nothing when ``refine`` is None); adds its seconds to
-    the batch's ``t_refine`` share."""
-    if refine is None:
-        return
-    with timer("refine") as lap:
-        work.flow_fwd, work.flow_bwd = refine_consecutive(work.imgs, work.flow_fwd, work.flow_bwd, refine)
-    work.share["t_refine"] += lap.seconds / len(work.idx)
-
-
 def _refine_parts(work: _Batch, parts: list[RefinePart], timer: StageTimer) -> None:
-    """Refine the pairs of ``parts`` of the batch in place (:func:`dfvo.inference.refine_split.run_parts`); adds
-    the seconds to the batch's ``t_refine`` share and each stage's seconds per pair to ``unit_seconds``."""
+    """Refine the pairs of ``parts`` of the batch photometrically in place (:func:`dfvo.inference.refine_split.
+    run_parts`; all of them: :func:`~dfvo.inference.refine_split.whole_refinement`); adds the seconds to the batch's
+    ``t_refine`` share and each stage's seconds per pair to ``unit_seconds``."""
     if not parts:
         return
     with timer("refine") as lap:
@@ -224,7 +215,7 @@ class FrameStepper:
     def __init__(self, flow_src: FlowSource, depth_src: DepthSource, vo: VisualOdometry, K: torch.Tensor, *,
                  refine: FlowRefinementConfig | None, timer: StageTimer, device: str = "cpu",
                  finetuner: object | None = None) -> None:
-        self.flow_src, self.depth_src, self.vo, self.refine = flow_src, depth_src, vo, refine
+        self.flow_src, self.depth_src, self.vo, self.stages = flow_src, depth_src, vo, refine_stages(refine)
         self.timer, self.device, self.finetuner = timer, device, finetuner
         self.K = K.to(device).reshape(1, 3, 3)
         self.reset()
@@ -248,7 +239,7 @@ class FrameStepper:
         self.prev = img
         work, self.depth_carry = _pair_stage(imgs, [self.index - 1], self.flow_src, self.depth_src, self.timer,
                                              _two_views(self.vo), self.depth_carry, self.finetuner)
-        _refine_stage(work, self.refine, self.timer)
+        _refine_parts(work, whole_refinement(self.stages, 1), self.timer)
         return next(_records(work, _track_stage(work, self.vo, self.K, self.timer)))
 
 
@@ -286,7 +277,8 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
         torch.set_num_threads(max(1, threads // 2))
 
     # overlap="full": the refinement cut between the two threads where it evens them out (inference/refine_split.py)
-    balance = RefineBalance(refine_stages(refine), batch_size) if mode == OverlapMode.full else None
+    stages = refine_stages(refine)
+    balance = RefineBalance(stages, batch_size) if mode == OverlapMode.full else None
 
     def track(work: _Batch, parts: list[RefinePart]) -> tuple[_Batch, list[FrameResult]]:
         start = time.perf_counter()
@@ -313,7 +305,7 @@ def track_sequence(seq: FrameSequence, flow_src: FlowSource, depth_src: DepthSou
             start = time.perf_counter()
             work, depth_carry = _pair_stage(imgs, idx, flow_src, depth_src, timer, two_views, depth_carry, finetuner)
             if tracker_pool is None:
-                _refine_stage(work, refine, timer)
+                _refine_parts(work, whole_refinement(stages, len(idx)), timer)
                 yield from _records(work, _track_stage(work, vo, K, timer))
                 continue
             main_parts, tracker_parts = balance.parts(len(idx))

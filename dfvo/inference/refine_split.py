@@ -28,7 +28,7 @@ import torch
 
 from dfvo.matching.flow_refinement import FlowRefinementConfig, RefinementMode, refine_consecutive
 
-__all__ = ["RefinePart", "RefineBalance", "refine_stages", "split_refinement", "run_parts"]
+__all__ = ["RefinePart", "RefineBalance", "refine_stages", "split_refinement", "whole_refinement", "run_parts"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,12 @@ def split_refinement(stages: list[FlowRefinementConfig], pairs: int, main_units:
         if cut < pairs:
             tracker.append(RefinePart(s, cfg, cut, pairs))
     return main, tracker
+
+
+def whole_refinement(stages: list[FlowRefinementConfig], pairs: int) -> list[RefinePart]:
+    """Every stage over all ``pairs`` pairs, in order: the refinement of a batch in one thread (the serial loop,
+    ``overlap="load"``, frames one at a time); the flows of one ``refine_consecutive`` call, bit for bit."""
+    return split_refinement(stages, pairs, len(stages) * pairs)[0]
 
 
 def run_parts(parts: list[RefinePart], images: torch.Tensor, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor
@@ -129,7 +135,7 @@ class RefineBalance:
         for key, sec in unit_seconds.items():
             old = self.unit_seconds.get(key)
             self.unit_seconds[key] = sec if old is None else old + self.smoothing * (sec - old)
-        if self.main_seconds is None or self.tracker_seconds is None:
+        if self.main_seconds is None:
             self.main_seconds, self.tracker_seconds = main_seconds, tracker_seconds
         else:
             self.main_seconds += self.smoothing * (main_seconds - self.main_seconds)
@@ -150,5 +156,5 @@ class RefineBalance:
         """The running means as if the last batches had run with the new cut (``unit`` seconds moved to the network
         thread; negative: to the tracker thread), so that one imbalance moves the cut once."""
         per_pair = unit / self.batch_size
-        self.main_seconds = (self.main_seconds or 0.0) + per_pair
-        self.tracker_seconds = (self.tracker_seconds or 0.0) - per_pair
+        self.main_seconds += per_pair
+        self.tracker_seconds -= per_pair

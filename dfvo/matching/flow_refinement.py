@@ -274,23 +274,20 @@ def _half(x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, size=((H + 1) // 2, (W + 1) // 2), mode="area")
 
 
-Frames = slice | torch.Tensor  # which frames of a prepared stack: a range (a view, no copy) or (P,) indices
-
-
-def _refine_pairs(frames: torch.Tensor, groups: list[tuple[Frames, Frames]], flow: torch.Tensor,
+def _refine_pairs(frames: torch.Tensor, groups: list[tuple[slice, slice]], flow: torch.Tensor,
                   cfg: FlowRefinementConfig) -> torch.Tensor:
     """Refine the flows (P,2,H,W) of pairs of ``frames`` (N,C,H,W), each frame prepared once per resolution:
     ``coarse_iterations`` at half resolution, then ``iterations``.
 
-    ``groups`` lists (template frames, target frames) selectors, one pair per flow row, in the order of ``flow``'s
-    rows; a range is a view of the prepared frames (an index tensor copies them; the numbers are the same)."""
+    ``groups`` lists (template frames, target frames) ranges of equal length, one pair per flow row, in the order of
+    ``flow``'s rows; the ranges are views of the prepared frames (no per-pair copies)."""
     if cfg.method == RefinementMethod.symmetric:
         prepare, refine = _prepare_symmetric, _refine_symmetric
     else:
         prepare, refine = _templates, _refine_ic
     rows, start = [], 0
     for template, target in groups:
-        n = (template.stop - template.start) if isinstance(template, slice) else int(template.numel())
+        n = template.stop - template.start
         rows.append((template, target, slice(start, start + n)))
         start += n
 
