@@ -126,15 +126,26 @@ def _find_drives(root: Path, drives: list[str] | None) -> list[Path]:
         if not available:
             raise DatasetError(f"KITTI raw root {root} contains no DATE/DATE_drive_XXXX_sync folders")
         return list(available.values())
-    chosen = []
-    for name in drives:
-        key = Path(name).name
-        key = key if key.endswith("_sync") else f"{key}_sync"
-        if key not in available:
-            raise DatasetError(f"KITTI raw drive {name!r} not found under {root} (expected folder "
-                               f"DATE/{key}; available: {sorted(available)})")
-        chosen.append(available[key])
-    return chosen
+    return [_drive_folder(str(name), root, available) for name in drives]
+
+
+def _drive_folder(name: str, root: Path, available: dict[str, Path]) -> Path:
+    """The folder of drive ``name``: its full name (``2011_09_26_drive_0001`` with or without ``_sync``), or its
+    number alone (``0001`` or ``1``) when exactly one date under ``root`` has a drive of that number."""
+    key = Path(name).name
+    key = key if key.endswith("_sync") else f"{key}_sync"
+    if key in available:
+        return available[key]
+    number = key.removesuffix("_sync")
+    if number.isdigit():
+        matches = sorted(k for k in available if k.endswith(f"_drive_{int(number):04d}_sync"))
+        if len(matches) == 1:
+            return available[matches[0]]
+        if len(matches) > 1:
+            raise DatasetError(f"KITTI raw drive {name!r} is ambiguous under {root}: {matches}; give the full name "
+                               f"(e.g. seq={matches[0].removesuffix('_sync')})")
+    raise DatasetError(f"KITTI raw drive {name!r} not found under {root} (expected a folder DATE/DATE_drive_NNNN_sync "
+                       f"named by seq=DATE_drive_NNNN or its number NNNN; available: {sorted(available)})")
 
 
 class _Drive:

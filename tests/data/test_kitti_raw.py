@@ -190,6 +190,19 @@ def test_unknown_drive(tmp_path: Path) -> None:
         KittiRawSnippets(tmp_path, None, None, drives=["2011_09_26_drive_0099_sync"])
 
 
+def test_drive_by_its_number(tmp_path: Path) -> None:
+    make_raw(tmp_path, n=3)
+    for name in ("0001", "1", "0001_sync"):  # the number alone names the one drive of that number
+        ds = KittiRawSnippets(tmp_path, None, None, drives=[name], temporal=False)
+        assert len(ds) == 3
+    with pytest.raises(DatasetError, match=r"drive '0002' not found .*seq=DATE_drive_NNNN or its number NNNN"):
+        KittiRawSnippets(tmp_path, None, None, drives=["0002"])
+    other = tmp_path / "2011_09_28" / "2011_09_28_drive_0001_sync" / "image_02" / "data"  # a second date, drive 1 too
+    other.mkdir(parents=True)
+    with pytest.raises(DatasetError, match=r"drive '0001' is ambiguous .*seq=2011_09_26_drive_0001\)"):
+        KittiRawSnippets(tmp_path, None, None, drives=["0001"])
+
+
 def test_left_right_mismatch(tmp_path: Path) -> None:
     make_raw(tmp_path, n=4, n_right=3)
     with pytest.raises(DatasetError, match=r"image_02/data has 4 images but image_03/data has 3"):
