@@ -1,5 +1,8 @@
 """CPU time of the loop's hot paths in isolation, on real KITTI frames: the dense flow refinement, the pyramid
-refinement at its candidates, and one road-alignment search (41 plane heights over the road patch).
+refinement at its candidates, one road-alignment search (41 plane heights over the road patch), and two parts of the
+tracker: the 1-D RANSAC of the CNN-depth scale (``simple_scale``, a batch of ``--pairs`` frames of 1,550 depth
+ratios, 80 % usable: the tracker's typical count on KITTI; its time depends on the shapes only) and the depth
+network's road-plane fit of one frame (``depth_road_height`` on the network's depth of the first frame).
 
 Each is run once to warm up, then ``--repeats`` times interleaved with the others (a shared machine's load falls on
 all of them alike); prints one JSON object with the minimum and median milliseconds per frame pair (dense, pyramid:
@@ -26,9 +29,11 @@ from dfvo.inference.config import typed
 from dfvo.inference.frames import build_sequence
 from dfvo.matching.flow_refinement import FlowRefinementConfig, RefinementMode, refine_consecutive
 from dfvo.matching.pyramid_refinement import refine_pyramid
-from dfvo.sources import build_flow_source
+from dfvo.sources import build_depth_source, build_flow_source
 from dfvo.tracking import road_scale
-from dfvo.tracking.config import RoadAlignmentConfig
+from dfvo.tracking.config import RoadAlignmentConfig, TrackerConfig
+from dfvo.tracking.scale import simple_scale
+from dfvo.tracking.scale_fusion import depth_road_height
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -62,12 +67,27 @@ def main() -> None:
     heights = torch.linspace(centre - math.log(road_cfg.span), centre + math.log(road_cfg.span),
                              2 * road_cfg.steps - 1, dtype=torch.float64)
 
+    depth = build_depth_source(cfg.depth, None, "cpu")(images[:1], [0])
+    tracker_cfg = TrackerConfig()
+    g = torch.Generator().manual_seed(0)
+    z_tri = 1.0 + 40.0 * torch.rand(args.pairs, 1550, generator=g, dtype=torch.float64)
+    z_cnn = 0.8 * z_tri * (1.0 + 0.05 * torch.randn(args.pairs, 1550, generator=g, dtype=torch.float64))
+    usable = torch.rand(args.pairs, 1550, generator=g) < 0.8
+
+    def generators() -> list[torch.Generator]:
+        return [torch.Generator().manual_seed(b) for b in range(args.pairs)]
+
     paths = {
+        "scale_ransac": (lambda: simple_scale(z_cnn, z_tri, usable, generators=generators()), args.pairs),
+        "road_plane": (lambda: depth_road_height(depth, K[None], tracker_cfg, torch.Generator().manual_seed(0), 1.65),
+                       1),
         "dense_refinement": (lambda: refine_consecutive(images, fwd, bwd, dense_cfg), args.pairs),
         "pyramid_refinement": (lambda: refine_pyramid(images, dense_fwd, dense_bwd, refine.pyramid), args.pairs),
         "road_search": (lambda: road_scale._cost_profiles(grey[:1], grey[1:], K, R, t, normal, pixels, blocks,
                                                           heights), 1),
     }
+    per_what = {"dense_refinement": "pair", "pyramid_refinement": "pair", "road_search": "search",
+                "scale_ransac": "frame", "road_plane": "frame"}
     times: dict[str, list[float]] = {name: [] for name in paths}
     for fn, _ in paths.values():  # warm-up
         fn()
@@ -80,7 +100,7 @@ def main() -> None:
         "threads": torch.get_num_threads(), "pairs": args.pairs, "size": list(images.shape[-2:]),
         "road_patch_pixels": int(pixels.shape[0]), "road_heights": int(heights.numel()),
         **{name: {"cpu_ms_min": round(min(v), 2), "cpu_ms_median": round(statistics.median(v), 2),
-                  "per": "pair" if paths[name][1] > 1 else "search"} for name, v in times.items()},
+                  "per": per_what[name]} for name, v in times.items()},
     }))
 
 

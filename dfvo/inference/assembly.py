@@ -73,7 +73,8 @@ def build_sources(icfg: InferConfig, world: Any, device: str) -> Sources:
                          "depth_checkpoint": str(getattr(depth_src, "checkpoint", "")) or None,
                          "flow_refinement": None if refine is None else asdict(refine),
                          "flow_runtime": getattr(flow_src, "runtime", None),
-                         "depth_runtime": getattr(depth_src, "runtime", None)},
+                         "depth_runtime": getattr(depth_src, "runtime", None),
+                         "depth_every": int(icfg.depth.every)},
              "online_finetune": finetuner is not None, "device": device}
     return Sources(flow_src, depth_src, refine, finetuner, extra)
 

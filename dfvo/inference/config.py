@@ -24,7 +24,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from dfvo.data.kitti_odometry import selects_kitti_odometry
 from dfvo.eval.alignment import AlignMode
 from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
-from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.config import TrackerConfig, TrackerMode
 from dfvo.training.online_flow import OnlineFlowConfig
 from dfvo.validation import check, choice, typed
 
@@ -327,6 +327,12 @@ class InferConfig:
     def __post_init__(self) -> None:
         choice(AlignMode, self.align, "align")
         check(int(self.batch_size) >= 1, f"batch_size={self.batch_size}; expected a positive number of frame pairs")
+        every = int(self.depth.every)
+        check(every >= 1, f"depth.every={self.depth.every}; expected a positive number of frames (1: every frame)")
+        check(every == 1 or (self.tracker.scale.depth_views == 2 and self.tracker.mode != TrackerMode.pnp),
+              f"depth.every={every} needs tracker.scale.depth_views=2 and a tracker with the E-tracker (tracker."
+              f"scale.depth_views={self.tracker.scale.depth_views}, tracker.mode={self.tracker.mode}): each pair "
+              "then has one frame with depth")
         height = self.data.get("camera_height") if isinstance(self.data, DictConfig) else \
             getattr(self.data, "camera_height", None)
         kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)

@@ -21,7 +21,7 @@ from dfvo.inference.config import ViewerConfig
 from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
-from dfvo.tracking.scale import triangulated_depths
+from dfvo.tracking.scale import has_depth, triangulated_depths
 from dfvo.viewer.rerun_recorder import RerunRecorder
 
 __all__ = ["RerunObserver", "triangulated_inliers"]
@@ -63,14 +63,15 @@ class RerunObserver:
     def on_frame(self, record: FrameRecord) -> None:
         """Log frame ``record.index`` (and frame 0 with the first record)."""
         if record.index == 1:
-            self.recorder.log_frame(0, np.eye(4), image=record.image_prev.cpu(), depth=record.depth_prev.cpu(),
+            depth0 = record.depth_prev.cpu() if has_depth(record.depth_prev) else None  # none: depth.every
+            self.recorder.log_frame(0, np.eye(4), image=record.image_prev.cpu(), depth=depth0,
                                     diagnostics=_row(FrameDiagnostics(frame=0, tracker=TrackerUsed.init), {}))
         T_w = record.result.T_w_cur.detach().cpu().double().numpy()
         matches = record.result.matches
         incon = forward_backward_inconsistency(record.flow_fwd[None].cpu(), record.flow_bwd[None].cpu())[0]
         self.recorder.log_frame(
             record.index, T_w, image=record.image.cpu(), flow_fwd=record.flow_fwd.cpu(), inconsistency=incon,
-            depth=None if record.depth is None else record.depth.cpu(),
+            depth=record.depth.cpu() if has_depth(record.depth) else None,
             pts_prev=None if matches is None else matches.pts_prev.cpu(),
             pts_cur=None if matches is None else matches.pts_cur.cpu(),
             inlier=None if matches is None or matches.inliers is None else matches.inliers.cpu(),

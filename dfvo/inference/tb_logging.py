@@ -12,6 +12,7 @@ import torch
 from dfvo.inference.config import TensorboardConfig
 from dfvo.inference.loop import FrameRecord
 from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.tracking.scale import has_depth
 from dfvo.vis.colour import flow_to_color, scalar_to_color
 
 __all__ = ["TensorboardObserver"]
@@ -48,8 +49,9 @@ class TensorboardObserver:
         self.writer.add_image("flow_fwd", flow_to_color(fwd)[0], step)
         self.writer.add_image("inconsistency", scalar_to_color(forward_backward_inconsistency(fwd, bwd),
                                                                vmax=1.0)[0], step)
-        inv = 1.0 / record.depth_prev.detach().cpu().clamp(min=1e-3)
-        self.writer.add_image("inverse_depth", (inv / inv.max().clamp(min=1e-6)).expand(3, -1, -1), step)
+        if has_depth(record.depth_prev):  # a frame without depth (depth.every) has none to show
+            inv = 1.0 / record.depth_prev.detach().cpu().clamp(min=1e-3)
+            self.writer.add_image("inverse_depth", (inv / inv.max().clamp(min=1e-6)).expand(3, -1, -1), step)
         matches = record.result.matches
         if matches is not None and len(matches.pts_prev):
             dots = image.clone()

@@ -14,6 +14,7 @@ from dfvo.io.checkpoint import CheckpointError, find_checkpoint, load_weights
 from dfvo.sources.base import DepthSource, FlowSource
 from dfvo.sources.config import DepthSourceConfig, DepthSourceKind, FlowSourceConfig, FlowSourceKind
 from dfvo.sources.dis import DISFlow
+from dfvo.sources.every_kth import EveryKthDepth
 from dfvo.sources.networks import NetworkDepth, NetworkFlow
 from dfvo.sources.oracle import OracleDepth, OracleFlow
 
@@ -97,10 +98,15 @@ def build_flow_source(cfg: FlowSourceConfig, world: Any = None, device: str = "c
 def build_depth_source(cfg: DepthSourceConfig, world: Any = None, device: str = "cpu") -> DepthSource:
     """The depth source a :class:`DepthSourceConfig` describes (``world``: the synthetic world for the oracle)."""
     kind = resolve_source(cfg, world, "depth")
+    every = int(getattr(cfg, "every", 1))
+    if every < 1:
+        raise ValueError(f"depth.every={every}; expected a positive number of frames (1: depth on every frame)")
     if kind == DepthSourceKind.oracle:
-        return OracleDepth(world)
-    if kind == DepthSourceKind.network:
-        return NetworkDepth(find_checkpoint(cfg.checkpoint, "depth.checkpoint"), cfg.depth_scale, cfg.min_depth,
-                            cfg.max_depth, device=device, input_size=cfg.input_size, flip_average=cfg.flip_average,
-                            runtime=cfg.runtime)
-    raise ValueError(f"depth.source={kind!r}; expected one of {[k.value for k in DepthSourceKind]}")
+        source: DepthSource = OracleDepth(world)
+    elif kind == DepthSourceKind.network:
+        source = NetworkDepth(find_checkpoint(cfg.checkpoint, "depth.checkpoint"), cfg.depth_scale, cfg.min_depth,
+                              cfg.max_depth, device=device, input_size=cfg.input_size, flip_average=cfg.flip_average,
+                              runtime=cfg.runtime)
+    else:
+        raise ValueError(f"depth.source={kind!r}; expected one of {[k.value for k in DepthSourceKind]}")
+    return source if every == 1 else EveryKthDepth(source, every)

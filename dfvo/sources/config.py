@@ -106,6 +106,9 @@ class DepthSourceConfig:
         input_size: [h, w] the network runs at; None: the checkpoint's metadata, else the working size.
         flip_average: also run on the mirrored image and blend the inverse depths (2x depth time).
         runtime: what runs the network; see :class:`RuntimeConfig`.
+        every: depth on every k-th frame only (1: every frame; k >= 2 needs ``tracker.scale.depth_views=2``: the
+            frames between have none and each pair takes its scale, road plane and PnP points from its frame with
+            depth; :mod:`dfvo.sources.every_kth`).
     """
 
     source: DepthSourceKind = DepthSourceKind.auto
@@ -116,3 +119,4 @@ class DepthSourceConfig:
     input_size: list[int] | None = None
     flip_average: bool = False
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+    every: int = 1

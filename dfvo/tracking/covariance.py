@@ -219,7 +219,7 @@ def _project(T: torch.Tensor, X: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pixels_cur: torch.Tensor,
                         K: torch.Tensor, threshold_px: float, depth_log_var: float,
-                        inflation: float = 1.0) -> torch.Tensor | None:
+                        inflation: float = 1.0, backwards: bool = False) -> torch.Tensor | None:
     """6x6 covariance of ``T_prev_cur`` (module convention) of a PnP-tracked frame.
 
     Args:
@@ -228,6 +228,8 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
         threshold_px: PnP's inlier threshold (reprojection error, pixels).
         depth_log_var: variance of the log of the depth's global scale (PnP's translation scales with it).
         inflation: factor on the normal equations' covariance (not on the depth scale's variance).
+        backwards: PnP ran the other way (the earlier frame had no depth): the arguments are then ``T_prev_cur``,
+            the current frame's points and their pixels in the previous image, and the pose itself is the step.
 
     Returns:
         (6,6) float64, or None (too few inliers, singular normal equations).
@@ -260,10 +262,16 @@ def pnp_step_covariance(T_cur_prev: torch.Tensor, points_prev: torch.Tensor, pix
     Cp[6, 6] = float(depth_log_var)
     R_pc0, t_pc0 = R0.T, -R0.T @ t0
 
+    if backwards:  # the solved pose is the step T_prev_cur itself
+        R_pc0, t_pc0 = R0, t0
+
     def step(p: torch.Tensor) -> torch.Tensor:  # (B,7) -> (B,6)
         T = perturbed(p)
-        R_pc = T[:, :3, :3].transpose(-1, -2)
-        t_pc = -(R_pc @ (T[:, :3, 3] * torch.exp(p[:, 6:7]))[..., None])[..., 0]
+        if backwards:
+            R_pc, t_pc = T[:, :3, :3], T[:, :3, 3] * torch.exp(p[:, 6:7])
+        else:
+            R_pc = T[:, :3, :3].transpose(-1, -2)
+            t_pc = -(R_pc @ (T[:, :3, 3] * torch.exp(p[:, 6:7]))[..., None])[..., 0]
         return torch.cat([antisymmetric_vee(R_pc @ R_pc0.T), t_pc - t_pc0], -1)
 
     G = _jacobian(step, 7)
@@ -280,7 +288,7 @@ def constant_motion_covariance(T_prev_cur: torch.Tensor, cfg: object) -> torch.T
 
 def step_covariance(tracker: str | None, T_cur_prev: torch.Tensor | None, T_prev_cur: torch.Tensor,
                     pts_prev: torch.Tensor, pts_cur: torch.Tensor, K: torch.Tensor, depth_prev: torch.Tensor,
-                    cfg: object, log_length_var: float) -> torch.Tensor:
+                    cfg: object, log_length_var: float, depth_cur: torch.Tensor | None = None) -> torch.Tensor:
     """The 6x6 covariance (module convention) of one frame's ``T_prev_cur``, whichever tracker gave it.
 
     Args:
@@ -290,6 +298,7 @@ def step_covariance(tracker: str | None, T_cur_prev: torch.Tensor | None, T_prev
         K: (3,3). depth_prev: (1,1,H,W) the earlier frame's depth (PnP's 3-D points).
         cfg: the :class:`~dfvo.tracking.config.TrackerConfig`.
         log_length_var: variance of log(length) of an E frame (the scale filter's).
+        depth_cur: (1,1,H,W) the later frame's depth when PnP ran backwards (the earlier frame had none).
 
     Returns:
         (6,6) float64; a frame whose normal equations fail gets the constant-motion value.
@@ -303,11 +312,14 @@ def step_covariance(tracker: str | None, T_cur_prev: torch.Tensor | None, T_prev
         cov = essential_step_covariance(T_cur_prev, pts_prev, pts_cur, K, cfg.essential.threshold_px, log_length_var,
                                         ccfg.inflation)
     elif tracker == "PnP" and T_cur_prev is not None:
-        z, ok = sample_depth(depth_prev, pts_prev[None], cfg.scale.max_depth, cfg.scale.depth_crop_top)
+        backwards = depth_cur is not None
+        lifted, seen = (pts_cur, pts_prev) if backwards else (pts_prev, pts_cur)
+        z, ok = sample_depth(depth_cur if backwards else depth_prev, lifted[None], cfg.scale.max_depth,
+                             cfg.scale.depth_crop_top)
         ok = ok[0]
-        X = backproject_points(pts_prev[None].to(torch.float64), z, K[None].to(torch.float64))[0]
-        cov = pnp_step_covariance(T_cur_prev, X[ok], pts_cur[ok], K, cfg.pnp.threshold_px,
-                                  cfg.scale_filter.cnn_log_std ** 2, ccfg.inflation)
+        X = backproject_points(lifted[None].to(torch.float64), z, K[None].to(torch.float64))[0]
+        cov = pnp_step_covariance(T_prev_cur if backwards else T_cur_prev, X[ok], seen[ok], K, cfg.pnp.threshold_px,
+                                  cfg.scale_filter.cnn_log_std ** 2, ccfg.inflation, backwards=backwards)
     if cov is None or not bool(torch.isfinite(cov).all()):
         return constant_motion_covariance(T_prev_cur, ccfg)
     return cov

@@ -84,6 +84,7 @@ def _plane_residual_sq(normal: torch.Tensor, d: torch.Tensor, X: torch.Tensor) -
 def _least_squares(X: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Total-least-squares plane of the rows ``w`` (B,N) bool of X (B,N,3): normal (B,3) with n_y >= 0, d (B,)."""
     wf = w.to(X.dtype)[..., None]
+    X = torch.where(w[..., None], X, 0.0)  # rows outside ``w`` may hold NaN (no depth there): 0 * NaN is NaN
     cnt = wf.sum(1).clamp_min(1.0)
     mean = (X * wf).sum(1) / cnt
     Xc = (X - mean[:, None]) * wf
@@ -142,7 +143,10 @@ def fit_road_plane(X: torch.Tensor, rows: torch.Tensor, threshold: float = RoadP
     dist = err.sqrt()  # (B,T,N) relative distances, inf for invalid hypotheses
     dist = torch.where(rows[:, None], dist, torch.full_like(dist, float("inf")))
     k = (quantile * rows.sum(-1).to(torch.float64)).floor().long().clamp(1, N) - 1  # (B,)
-    score = dist.sort(-1).values.gather(-1, k[:, None, None].expand(B, trials, 1))[..., 0]  # (B,T)
+    if bool((k == k[0]).all()):  # one selection instead of a sort (the same value)
+        score = dist.kthvalue(int(k[0]) + 1, dim=-1).values  # (B,T)
+    else:
+        score = dist.sort(-1).values.gather(-1, k[:, None, None].expand(B, trials, 1))[..., 0]
     best = score.argmin(-1)
     ar = torch.arange(B, device=X.device)
     n_best, d_best = n[ar, best], d[ar, best]

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 from kornia.color import rgb_to_grayscale
@@ -47,7 +48,7 @@ from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.e_tracker import ETrackerResult, essential_scale, track_essential
 from dfvo.tracking.gates import check_direction, check_length, check_support, image_parallax_px
 from dfvo.tracking.pnp_tracker import track_pnp
-from dfvo.tracking.scale import iterative_scale, sample_depth
+from dfvo.tracking.scale import has_depth, iterative_scale, sample_depth
 from dfvo.tracking.scale_filter import ScaleEstimate
 from dfvo.tracking.scale_fusion import ScaleFusion
 
@@ -121,6 +122,18 @@ class FrameState:
     def rows(self) -> torch.Tensor:
         """(N,) bool: the real correspondence rows."""
         return self.mask[0]
+
+    @cached_property
+    def pnp_backwards(self) -> bool:
+        """The earlier frame has no depth but the later one has (``depth.every``): PnP lifts the later frame's
+        points and inverts its pose."""
+        return not has_depth(self.depth) and has_depth(self.depth_next)
+
+    @property
+    def plane_depth(self) -> torch.Tensor:
+        """(1,1,H,W) the depth the network's road plane is fitted to: the earlier frame's, or the later frame's when
+        only that one has depth (the road lies the same way below the camera one frame on)."""
+        return self.depth_next if self.pnp_backwards else self.depth
 
 
 class VisualOdometry:
@@ -292,7 +305,7 @@ class VisualOdometry:
         matches = FrameMatches(st.pts_prev[0][rows], st.pts_cur[0][rows], inliers)
         log_var = length_log_variance(st.estimate, self.fusion._prior.pxx, self.last_scale, cfg)
         cov = step_covariance(diag.tracker, T_cur_prev, T_prev_cur, matches.pts_prev, matches.pts_cur, st.K[0],
-                              st.depth, cfg, log_var)
+                              st.depth, cfg, log_var, st.depth_next if st.pnp_backwards else None)
         return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches, cov)
 
     def _essential_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
@@ -340,7 +353,7 @@ class VisualOdometry:
         diag.scale_cnn = s if ok else None
         if self.fusion.uses_fusion:
             est = self.fusion.estimate(R, t, s if ok else None, pi, pj, (rows & e_res.inliers[0])[None],
-                                       K, st.flow, st.inconsistency, depth, gen, diag, st.grey_pair)
+                                       K, st.flow, st.inconsistency, st.plane_depth, gen, diag, st.grey_pair)
             if est.scale is None:
                 return None, failed
             if est.source == "prediction":
@@ -378,7 +391,11 @@ class VisualOdometry:
         """The PnP-tracker's pose ``T_cur_prev`` (4,4) after its gates, or None (the reason noted)."""
         cfg, diag = self.cfg, st.diagnostics
         pi, pj, mask, depth, K = st.pts_prev, st.pts_cur, st.mask, st.depth, st.K
-        T, ok, nin = track_pnp(pi, pj, mask, depth, K, cfg, [st.generator])
+        if st.pnp_backwards:  # the earlier frame has no depth (depth.every): the later frame's points, inverted
+            T, ok, nin = track_pnp(pj, pi, mask, st.depth_next, K, cfg, [st.generator])
+            T = se3_inverse(T)  # identity where it failed, as before
+        else:
+            T, ok, nin = track_pnp(pi, pj, mask, depth, K, cfg, [st.generator])
         diag.pnp_success, diag.num_inliers = bool(ok[0]), int(nin[0])
         if not bool(ok[0]):
             diag.add_reason("PnP failed")
@@ -388,14 +405,15 @@ class VisualOdometry:
             # PnP's length is the depth network's scale: one more observation of the filter (with its bias, the
             # three-frame relative scale and the road), not the frame's length as it is
             R_p, t_p = T[:, :3, :3], T[:, :3, 3] / length
-            est = self.fusion.estimate(R_p, t_p, length, pi, pj, mask, K, st.flow, st.inconsistency, depth,
+            est = self.fusion.estimate(R_p, t_p, length, pi, pj, mask, K, st.flow, st.inconsistency, st.plane_depth,
                                        st.generator, diag, st.grey_pair)
             if est.scale is not None:
                 st.estimate = est
                 length = est.scale
                 T = pose_from_rt(R_p, length * t_p)
         if cfg.gate.enabled:
-            _, usable = sample_depth(depth, pi, cfg.scale.max_depth, cfg.scale.depth_crop_top)
+            lifted = (st.depth_next, pj) if st.pnp_backwards else (depth, pi)
+            _, usable = sample_depth(*lifted, cfg.scale.max_depth, cfg.scale.depth_crop_top)
             direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])
             reason = self._gate(st, check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
                                 or check_length("PnP", length, self.fusion.expected_length, cfg.gate,
