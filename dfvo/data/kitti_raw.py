@@ -137,7 +137,7 @@ def _drive_folder(name: str, root: Path, available: dict[str, Path]) -> Path:
     if key in available:
         return available[key]
     number = key.removesuffix("_sync")
-    if number.isdigit():
+    if number.isdecimal() and number.isascii():
         matches = sorted(k for k in available if k.endswith(f"_drive_{int(number):04d}_sync"))
         if len(matches) == 1:
             return available[matches[0]]

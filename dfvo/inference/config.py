@@ -24,7 +24,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from dfvo.data.kitti_odometry import selects_kitti_odometry
 from dfvo.eval.alignment import AlignMode
 from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
-from dfvo.tracking.config import TrackerConfig, TrackerMode
+from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
 from dfvo.training.online_flow import OnlineFlowConfig
 from dfvo.validation import check, choice, typed
 
@@ -333,6 +333,9 @@ class InferConfig:
               f"depth.every={every} needs tracker.scale.depth_views=2 and a tracker with the E-tracker (tracker."
               f"scale.depth_views={self.tracker.scale.depth_views}, tracker.mode={self.tracker.mode}): each pair "
               "then has one frame with depth")
+        check(every == 1 or self.tracker.scale.method != ScaleMethod.iterative,
+              f"depth.every={every} needs tracker.scale.method=simple (the iterative scale re-selects on the earlier "
+              "frame's depth, which every other frame lacks)")
         height = self.data.get("camera_height") if isinstance(self.data, DictConfig) else \
             getattr(self.data, "camera_height", None)
         kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)

@@ -69,8 +69,8 @@ def simple_scale(z_cnn: torch.Tensor, z_tri: torch.Tensor, mask: torch.Tensor,
                  generators: list[torch.Generator] | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One scale per frame by 1-D RANSAC on ratios ``z_cnn / z_tri``.
 
-    Each trial averages ``samples`` random ratios; rows within ``threshold`` of it are its inliers; the trial with most
-    inliers wins (ties: lowest absolute residual sum) and the scale is the mean of its inlier ratios (float64).
+    Each trial averages ``samples`` random ratios; rows within ``threshold`` of it are its inliers; the trial
+    with most inliers wins (ties: lowest absolute residual sum) and the scale is the mean of its inlier ratios.
 
     Args:
         z_cnn: (B,N) network depth at pixels of image i. z_tri: (B,N) triangulated depth (unit translation).
@@ -94,13 +94,10 @@ def simple_scale(z_cnn: torch.Tensor, z_tri: torch.Tensor, mask: torch.Tensor,
     u = frame_rand(generators, B, (trials, N), z_cnn.device)
     u = torch.where(m[:, None], u, torch.full_like(u, -1.0))
     idx = u.topk(min(samples, N), dim=-1).indices  # (B,T,s)
-    hyp = ratio.gather(1, idx.view(B, -1)).view(B, trials, -1).mean(-1)  # (B,T)
-    # (B,T,N) residuals in float32, in place (the largest tensors of the E-tracker's scale): the ratios are metres
-    # per unit translation (~0.1-5 on the road), where float32 resolves 1e-6 of the 0.1 threshold
-    res = (ratio.to(torch.float32)[:, None] - hyp.to(torch.float32)[..., None]).abs_()
-    inl = (res < threshold).logical_and_(m[:, None])
-    key = inl.sum(-1).to(torch.float64) - res.masked_fill_(~inl, 0.0).sum(-1, dtype=torch.float64) / (
-        threshold * (N + 1))
+    hyp = ratio[:, None].expand(-1, trials, -1).gather(2, idx).mean(-1)  # (B,T)
+    res = (ratio[:, None] - hyp[..., None]).abs()
+    inl = m[:, None] & (res < threshold)
+    key = inl.sum(-1).to(torch.float64) - torch.where(inl, res, 0.0).sum(-1) / (threshold * (N + 1))
     best = key.argmax(-1)
     inliers = inl[torch.arange(B), best]
     cnt = inliers.sum(-1)

@@ -81,8 +81,6 @@ def depth_road_height(depth: torch.Tensor, K: torch.Tensor, cfg: TrackerConfig,
     x = normalise_points(px[None], K.to(torch.float64))
     X = torch.cat([x, torch.ones_like(x[..., :1])], -1) * z[None, :, None]
     ok = (z > 0) & torch.isfinite(z) & (z <= cfg.scale.max_depth)
-    if int(ok.sum()) < 3:  # no depth in the band (a frame without depth: depth.every)
-        return HeightObservation(None, None, 0)
     plane = fit_road_plane(X, ok[None], threshold=rp.threshold, max_tilt_deg=rp.max_tilt_deg,
                            min_inliers=rp.min_inliers, trials=rp.trials, quantile=rp.quantile,
                            generators=None if generator is None else [generator])
