@@ -77,22 +77,21 @@ def main() -> None:
     def generators() -> list[torch.Generator]:
         return [torch.Generator().manual_seed(b) for b in range(args.pairs)]
 
-    paths = {
-        "scale_ransac": (lambda: simple_scale(z_cnn, z_tri, usable, generators=generators()), args.pairs),
+    paths = {  # name: (call, how many units one call does, the unit)
+        "scale_ransac": (lambda: simple_scale(z_cnn, z_tri, usable, generators=generators()), args.pairs, "frame"),
         "road_plane": (lambda: depth_road_height(depth, K[None], tracker_cfg, torch.Generator().manual_seed(0), 1.65),
-                       1),
-        "dense_refinement": (lambda: refine_consecutive(images, fwd, bwd, dense_cfg), args.pairs),
-        "pyramid_refinement": (lambda: refine_pyramid(images, dense_fwd, dense_bwd, refine.pyramid), args.pairs),
+                       1, "frame"),
+        "dense_refinement": (lambda: refine_consecutive(images, fwd, bwd, dense_cfg), args.pairs, "pair"),
+        "pyramid_refinement": (lambda: refine_pyramid(images, dense_fwd, dense_bwd, refine.pyramid), args.pairs,
+                               "pair"),
         "road_search": (lambda: road_scale._cost_profiles(grey[:1], grey[1:], K, R, t, normal, pixels, blocks,
-                                                          heights), 1),
+                                                          heights), 1, "search"),
     }
-    per_what = {"dense_refinement": "pair", "pyramid_refinement": "pair", "road_search": "search",
-                "scale_ransac": "frame", "road_plane": "frame"}
     times: dict[str, list[float]] = {name: [] for name in paths}
-    for fn, _ in paths.values():  # warm-up
+    for fn, _, _ in paths.values():  # warm-up
         fn()
     for _ in range(args.repeats):
-        for name, (fn, per) in paths.items():
+        for name, (fn, per, _) in paths.items():
             start = time.process_time()
             fn()
             times[name].append(1000.0 * (time.process_time() - start) / per)
@@ -100,7 +99,7 @@ def main() -> None:
         "threads": torch.get_num_threads(), "pairs": args.pairs, "size": list(images.shape[-2:]),
         "road_patch_pixels": int(pixels.shape[0]), "road_heights": int(heights.numel()),
         **{name: {"cpu_ms_min": round(min(v), 2), "cpu_ms_median": round(statistics.median(v), 2),
-                  "per": per_what[name]} for name, v in times.items()},
+                  "per": paths[name][2]} for name, v in times.items()},
     }))
 
 

@@ -26,7 +26,6 @@ import argparse
 import csv
 import dataclasses
 import json
-import statistics
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ from hydra import compose, initialize_config_dir
 from dfvo.inference.config import typed
 from dfvo.inference.frames import build_sequence
 from dfvo.sources import build_depth_source
+from dfvo.tracking.camera_height import CameraHeight
 from dfvo.tracking.config import TrackerConfig
 from dfvo.tracking.scale_fusion import depth_road_height
 
@@ -57,31 +57,26 @@ def _sequence(kind: str, root: str, seq: str):
     return cfg, build_sequence(cfg.data, cfg.seq, cfg.img_res)
 
 
-def _robust_spread(values: list[float]) -> float:
-    med = statistics.median(values)
-    return 1.4826 * statistics.median(abs(v - med) for v in values) / med
-
-
 def network_heights(kind: str, root: str, seq: str, batch: int = 8) -> dict:
     """Median network road height (m) and spread over the frames of one sequence, per band."""
     cfg, frames = _sequence(kind, root, seq)
     depth_src = build_depth_source(cfg.depth, None, "cpu")
     K = frames.K.to(torch.float32)[None]
     base = TrackerConfig()
-    heights: dict[str, list[float]] = {name: [] for name in BANDS}
+    # the tracker's own estimator per band: the median of the per-frame heights and its robust spread
+    heights = {name: CameraHeight(None, base.camera_height) for name in BANDS}
     for start in range(0, frames.length, batch):
         idx = list(range(start, min(frames.length, start + batch)))
         depth = depth_src(torch.stack([frames.image(i) for i in idx]), idx)
         for b in range(len(idx)):
             for name, fields in BANDS.items():
                 tcfg = dataclasses.replace(base, road_plane=dataclasses.replace(base.road_plane, **fields))
-                obs = depth_road_height(depth[b:b + 1], K, tcfg, torch.Generator().manual_seed(0))
-                if obs.height_unit is not None:
-                    heights[name].append(obs.height_unit)
+                heights[name].observe(depth_road_height(depth[b:b + 1], K, tcfg, torch.Generator().manual_seed(0))
+                                      .height_unit)
     return {"frames": frames.length, "bands": {
-        name: {"median_m": round(statistics.median(v), 4), "vs_1.65": round(statistics.median(v) / 1.65 - 1, 4),
-               "spread": round(_robust_spread(v), 4), "frames_with_plane": len(v)} if v else None
-        for name, v in heights.items()}}
+        name: {"median_m": round(h.estimate, 4), "vs_1.65": round(h.estimate / KITTI_CAMERA_HEIGHT - 1, 4),
+               "spread": None if h.spread is None else round(h.spread, 4), "frames_with_plane": len(h.heights)}
+        if h.estimate is not None else None for name, h in heights.items()}}
 
 
 def photometric_height(run: Path, poses_file: Path) -> dict:

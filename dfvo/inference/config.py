@@ -327,8 +327,7 @@ class InferConfig:
     def __post_init__(self) -> None:
         choice(AlignMode, self.align, "align")
         check(int(self.batch_size) >= 1, f"batch_size={self.batch_size}; expected a positive number of frame pairs")
-        every = int(self.depth.every)
-        check(every >= 1, f"depth.every={self.depth.every}; expected a positive number of frames (1: every frame)")
+        every = int(self.depth.every)  # >= 1: DepthSourceConfig's own check
         check(every == 1 or (self.tracker.scale.depth_views == 2 and self.tracker.mode != TrackerMode.pnp),
               f"depth.every={every} needs tracker.scale.depth_views=2 and a tracker with the E-tracker (tracker."
               f"scale.depth_views={self.tracker.scale.depth_views}, tracker.mode={self.tracker.mode}): each pair "

@@ -98,9 +98,6 @@ def build_flow_source(cfg: FlowSourceConfig, world: Any = None, device: str = "c
 def build_depth_source(cfg: DepthSourceConfig, world: Any = None, device: str = "cpu") -> DepthSource:
     """The depth source a :class:`DepthSourceConfig` describes (``world``: the synthetic world for the oracle)."""
     kind = resolve_source(cfg, world, "depth")
-    every = int(getattr(cfg, "every", 1))
-    if every < 1:
-        raise ValueError(f"depth.every={every}; expected a positive number of frames (1: depth on every frame)")
     if kind == DepthSourceKind.oracle:
         source: DepthSource = OracleDepth(world)
     elif kind == DepthSourceKind.network:
@@ -109,4 +106,4 @@ def build_depth_source(cfg: DepthSourceConfig, world: Any = None, device: str = 
                               runtime=cfg.runtime)
     else:
         raise ValueError(f"depth.source={kind!r}; expected one of {[k.value for k in DepthSourceKind]}")
-    return source if every == 1 else EveryKthDepth(source, every)
+    return source if int(cfg.every) == 1 else EveryKthDepth(source, int(cfg.every))

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 from dfvo.matching.flow_refinement import FlowRefinementConfig
+from dfvo.validation import check
 
 __all__ = ["FlowSourceKind", "DepthSourceKind", "DisPreset", "RuntimeKind", "RuntimeConfig", "FlowSourceConfig",
            "DepthSourceConfig"]
@@ -120,3 +121,6 @@ class DepthSourceConfig:
     flip_average: bool = False
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     every: int = 1
+
+    def __post_init__(self) -> None:
+        check(int(self.every) >= 1, f"depth.every={self.every}; expected a positive number of frames (1: every frame)")
