@@ -52,6 +52,7 @@ CONFIGS: dict[str, list[str]] = {
     "filter trusts its first observation": ["tracker.scale_filter.warmup_frames=0"],
     "network road plane as the height observation": ["tracker.road_plane.points=depth",
                                                      "tracker.road_alignment.enabled=false"],
+    "window bundle adjustment (opt-in)": ["tracker.window.enabled=true"],
 }
 SCENARIOS = ("drive", "city", "straight", "highway")
 

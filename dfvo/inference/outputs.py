@@ -255,7 +255,9 @@ class FramesCsv:
 
 def fallback_summary(diagnostics: list[FrameDiagnostics],
                      threshold: float = InferConfig.warn_fallback_rate) -> dict[str, Any]:
-    """Counts of the trackers used and of the frames that fell back to constant motion or whose PnP failed.
+    """Counts of the trackers used and of the frames that fell back to constant motion or whose PnP failed; with
+    ``tracker.window`` also ``window``: frames whose step the window refined and frames it did not (the reasons are
+    ``frames.csv``'s ``window_rejected``).
 
     Args:
         diagnostics: the tracked frames (frame 0 excluded).
@@ -271,4 +273,7 @@ def fallback_summary(diagnostics: list[FrameDiagnostics],
     out = {"frames": len(diagnostics), "constant_motion": const, "pnp_failed": pnp_fail,
            "constant_motion_rate": const / n, "pnp_failed_rate": pnp_fail / n, "trackers": trackers}
     out["warn"] = out["constant_motion_rate"] > threshold or out["pnp_failed_rate"] > threshold
+    if any(d.window_tracks is not None or d.window_rejected is not None for d in diagnostics):
+        refined = sum(d.window_length_ratio is not None for d in diagnostics)
+        out["window"] = {"refined": refined, "not_refined": len(diagnostics) - refined}
     return out

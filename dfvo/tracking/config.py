@@ -26,7 +26,8 @@ from dfvo.validation import check, choice
 
 __all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "RoadPoints", "SelectionConfig",
            "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "CameraHeightConfig",
-           "RoadAlignmentConfig", "ScaleFilterConfig", "GateConfig", "PnPConfig", "CovarianceConfig", "TrackerConfig"]
+           "RoadAlignmentConfig", "ScaleFilterConfig", "GateConfig", "PnPConfig", "CovarianceConfig", "WindowConfig",
+           "TrackerConfig"]
 
 
 class TrackerMode(StrEnum):
@@ -436,6 +437,53 @@ class CovarianceConfig:
 
 
 @dataclass
+class WindowConfig:
+    """Sliding-window bundle adjustment of each latest step (``tracker.window``; :mod:`dfvo.tracking.window_refinement`;
+    beyond the paper, off by default).
+
+    Attributes:
+        enabled: refine each step over the window (the tracker's own decisions are unchanged).
+        frames: frames in the window (>= 3): the latest ``frames - 1`` steps and the tracks through them.
+        iterations: Levenberg–Marquardt iterations per frame.
+        pixel_sigma: standard deviation (pixels) of a track's position; the weight is also divided by
+            ``tracker.covariance.inflation`` (correlated flow errors, as in the steps' covariances).
+        robust_px: scale (pixels) of the Cauchy loss on the reprojection residuals.
+        max_inconsistency: forward-backward inconsistency (pixels) up to which a track is carried into the next frame.
+        cell_px: a pair's correspondences start new tracks only in cells of this size (pixels) that hold no carried
+            track, one per cell (bounds the problem's size; spreads the tracks over the image).
+        depth_log_std: standard deviation of a track's log depth around the depth network's (times the window's
+            triangulated-over-CNN ratio).
+        min_parallax_deg: triangulation angle below which a track's first depth is the network's.
+        min_tracks: fewer tracks: the step is not refined.
+        max_rotation_change_deg, max_length_change: a refinement that turns the step by more (degrees) or changes
+            its length by more (relative) is not used (flagged ``window_rejected``).
+    """
+
+    enabled: bool = False
+    frames: int = 4
+    iterations: int = 5
+    pixel_sigma: float = 1.0
+    robust_px: float = 1.0
+    max_inconsistency: float = 0.5
+    cell_px: int = 8
+    depth_log_std: float = 0.3
+    min_parallax_deg: float = 0.5
+    min_tracks: int = 50
+    max_rotation_change_deg: float = 0.5
+    max_length_change: float = 0.25
+
+    def __post_init__(self) -> None:
+        check(int(self.frames) >= 3 and int(self.iterations) >= 1 and int(self.min_tracks) >= 1
+              and int(self.cell_px) >= 1,
+              f"tracker.window: frames={self.frames} (expected >= 3), iterations={self.iterations}, min_tracks="
+              f"{self.min_tracks}, cell_px={self.cell_px} (expected >= 1)")
+        check(min(self.pixel_sigma, self.robust_px, self.max_inconsistency, self.depth_log_std,
+                  self.max_rotation_change_deg, self.max_length_change) > 0 and self.min_parallax_deg >= 0,
+              "tracker.window: pixel_sigma, robust_px, max_inconsistency, depth_log_std, max_rotation_change_deg and "
+              "max_length_change must be positive, min_parallax_deg >= 0")
+
+
+@dataclass
 class TrackerConfig:
     """Every setting of the odometry loop (:class:`dfvo.tracking.VisualOdometry`).
 
@@ -443,7 +491,8 @@ class TrackerConfig:
         mode: see :class:`TrackerMode`.
         seed: frame k of a sequence draws its random samples from ``torch.Generator().manual_seed(seed + k)``.
         correspondence, essential, model_selection, scale, road_plane, road_alignment, camera_height, scale_filter,
-            gate, pnp: the stages' sections. covariance: the per-frame covariance of the step.
+            gate, pnp: the stages' sections. covariance: the per-frame covariance of the step. window: the
+            sliding-window refinement of each step (off by default).
     """
 
     mode: TrackerMode = TrackerMode.hybrid
@@ -459,6 +508,7 @@ class TrackerConfig:
     gate: GateConfig = field(default_factory=GateConfig)
     pnp: PnPConfig = field(default_factory=PnPConfig)
     covariance: CovarianceConfig = field(default_factory=CovarianceConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)
 
     def __post_init__(self) -> None:
         self.mode = choice(TrackerMode, self.mode, "tracker.mode")

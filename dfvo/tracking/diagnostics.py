@@ -54,6 +54,9 @@ class FrameDiagnostics:
         selection_failed: too few consistent correspondences (constant motion).
         fallback_reason: why the E-tracker's result was not used (None when it was), including the plausibility gates'
             reasons; on an E frame whose scale is the temporal filter's prediction, why.
+        window_tracks: tracks in the sliding-window refinement of this step (``tracker.window``; None: not run).
+        window_length_ratio: the refined step's length over the tracker's (None: the step was not refined).
+        window_rejected: why the window did not refine this step (too few tracks, a refinement beyond its limits).
         time_selection, time_e_tracker, time_sequential: seconds spent on this frame by each tracker stage.
     """
 
@@ -83,6 +86,9 @@ class FrameDiagnostics:
     pnp_success: bool | None = None
     selection_failed: bool = False
     fallback_reason: str | None = None
+    window_tracks: int | None = None
+    window_length_ratio: float | None = None
+    window_rejected: str | None = None
     time_selection: float = 0.0
     time_e_tracker: float = 0.0
     time_sequential: float = 0.0

@@ -19,6 +19,8 @@ observations all fail keeps the filter's prediction (``scale_source="prediction"
 plausibility gates (:mod:`dfvo.tracking.gates`, ``tracker.gate.enabled``) reject an E or PnP result with too few
 inliers, a translation far longer or shorter than the previous frame's, or one whose direction turns too far; E
 then falls to PnP (hybrid), PnP to constant motion, flagged in ``fallback_reason`` and ``gate_rejected``.
+With ``tracker.window.enabled`` (opt-in) the step each frame emits is a sliding-window bundle adjustment's
+refinement of the tracker's step (:mod:`dfvo.tracking.window_refinement`); the tracker's own state keeps its step.
 
 Batched == streaming: the selection, E/H RANSAC, GRIC and simple scale run on the whole batch; frame k of the
 sequence always draws from ``torch.Generator().manual_seed(cfg.seed + k)``; the iterative scale, PnP, the scale
@@ -51,6 +53,7 @@ from dfvo.tracking.pnp_tracker import track_pnp
 from dfvo.tracking.scale import has_depth, iterative_scale, sample_depth
 from dfvo.tracking.scale_filter import ScaleEstimate
 from dfvo.tracking.scale_fusion import ScaleFusion
+from dfvo.tracking.window_refinement import WindowRefiner
 
 __all__ = ["FrameMatches", "FrameResult", "VisualOdometry"]
 
@@ -161,6 +164,9 @@ class VisualOdometry:
                 or self.fusion.point_refinement is not self.point_refinement):
             self.fusion = ScaleFusion(self.cfg, self.point_refinement)
         self.fusion.reset()
+        w = self.cfg.window
+        self.window = (WindowRefiner(w, self.cfg.covariance.inflation, self.cfg.scale.max_depth,
+                                     self.cfg.scale.depth_crop_top) if w.enabled else None)
 
     # ------------------------------------------------------------------------------------------ public
     def step(self, flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, depth_prev: torch.Tensor,
@@ -287,7 +293,6 @@ class VisualOdometry:
             diag.tracker = TrackerUsed.constant_motion
         else:
             T_prev_cur = se3_inverse(T_cur_prev)
-        self.T_w = self.T_w @ T_prev_cur
         self.last_motion = T_prev_cur
         self.last_scale = float(T_prev_cur[:3, 3].norm())
         self.frame += 1
@@ -306,7 +311,25 @@ class VisualOdometry:
         log_var = length_log_variance(st.estimate, self.fusion._prior.pxx, self.last_scale, cfg)
         cov = step_covariance(diag.tracker, T_cur_prev, T_prev_cur, matches.pts_prev, matches.pts_cur, st.K[0],
                               st.depth, cfg, log_var, st.depth_next if st.pnp_backwards else None)
+        if self.window is not None:  # the emitted step only: the tracker's state above keeps its own
+            T_prev_cur = self._window_step(st, T_prev_cur, T_cur_prev is not None, cov, matches)
+        self.T_w = self.T_w @ T_prev_cur
         return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches, cov)
+
+    def _window_step(self, st: FrameState, T_prev_cur: torch.Tensor, tracked: bool, cov: torch.Tensor | None,
+                     matches: FrameMatches) -> torch.Tensor:
+        """The step the trajectory takes with ``tracker.window``: the window's refinement of the tracker's step
+        ``T_prev_cur`` (4,4), or the step itself (not refined, or the refinement rejected: noted)."""
+        pts_prev, pts_cur = matches.pts_prev, matches.pts_cur
+        if matches.inliers is not None:
+            pts_prev, pts_cur = pts_prev[matches.inliers], pts_cur[matches.inliers]
+        res = self.window.update(T_prev_cur, cov, tracked, pts_prev, pts_cur, st.flow, st.inconsistency, st.depth,
+                                 st.K[0])
+        diag = st.diagnostics
+        diag.window_tracks = res.num_tracks or None
+        diag.window_length_ratio = res.length_ratio if res.T_prev_cur is not None else None
+        diag.window_rejected = res.rejected
+        return T_prev_cur if res.T_prev_cur is None else res.T_prev_cur
 
     def _essential_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
         """The E-tracker's pose ``T_cur_prev`` (4,4) with its scale (iterative scale, fusion, gates), or None and
