@@ -56,11 +56,11 @@ def antisymmetric_vee(M: torch.Tensor) -> torch.Tensor:
 
 
 def step_error(T_est: torch.Tensor, T_true: torch.Tensor) -> torch.Tensor:
-    """The error 6-vector ``[phi, dt]`` (module convention) of an estimated step ``T_est`` (4,4) against the true
-    ``T_true`` (4,4): ``R_true = exp([phi]) R_est``, ``t_true = t_est + dt``."""
+    """The error 6-vectors ``[phi, dt]`` (...,6) (module convention) of estimated steps ``T_est`` (...,4,4) against
+    the true ``T_true`` (...,4,4) (broadcast): ``R_true = exp([phi]) R_est``, ``t_true = t_est + dt``."""
     T_est, T_true = torch.as_tensor(T_est, dtype=torch.float64), torch.as_tensor(T_true, dtype=torch.float64)
-    phi = so3_log(T_true[:3, :3] @ T_est[:3, :3].T)
-    return torch.cat([phi, T_true[:3, 3] - T_est[:3, 3]])
+    phi = so3_log(T_true[..., :3, :3] @ T_est[..., :3, :3].transpose(-1, -2))
+    return torch.cat([phi, T_true[..., :3, 3] - T_est[..., :3, 3]], -1)
 
 
 def nees(error: torch.Tensor, covariance: torch.Tensor) -> float:

@@ -30,8 +30,9 @@ from dfvo.geometry.essential_refine import refine_essential
 from dfvo.geometry.ransac import hypothesise_and_verify, pick_best, rank_models, score_models
 from dfvo.validation import check
 
-__all__ = ["EssentialConfig", "TwoViewResult", "normalise_points", "sampson_sq", "homography_error_sq",
-           "find_essential_ransac", "find_homography_ransac", "decompose_essential", "ray_depths"]
+__all__ = ["EssentialConfig", "TwoViewResult", "normalise_points", "normalised_rays", "sampson_sq",
+           "homography_error_sq", "find_essential_ransac", "find_homography_ransac", "decompose_essential",
+           "ray_depths"]
 
 
 @dataclass
@@ -100,6 +101,12 @@ def normalise_points(pts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     Kd = K.to(pts.dtype)
     x = (pts[..., 0] - Kd[:, None, 0, 2] - Kd[:, None, 0, 1] * (pts[..., 1] - Kd[:, None, 1, 2]) / Kd[:, None, 1, 1])
     return torch.stack([x / Kd[:, None, 0, 0], (pts[..., 1] - Kd[:, None, 1, 2]) / Kd[:, None, 1, 1]], -1)
+
+
+def normalised_rays(pts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Viewing rays ``K^-1 [u, v, 1]`` (z = 1) of pixels: pts (B,N,2), K (B,3,3) -> (B,N,3) float64."""
+    x = normalise_points(pts.to(torch.float64), K.to(torch.float64))
+    return torch.cat([x, torch.ones_like(x[..., :1])], -1)
 
 
 def sampson_sq(F: torch.Tensor, x_i: torch.Tensor, x_j: torch.Tensor) -> torch.Tensor:

@@ -55,6 +55,16 @@ def normalise_pixels(points: torch.Tensor, height: int, width: int) -> torch.Ten
                         2.0 * points[..., 1] / max(height - 1, 1) - 1.0], dim=-1)
 
 
+def sample_at_pixels(maps: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples (C,M) float64 of maps (1,C,H,W) at (M,2) pixel positions (border-clamped; pixel centres at
+    integers, ``align_corners=True``)."""
+    H, W = maps.shape[-2:]
+    grid = normalise_pixels(points, H, W).to(torch.float64)
+    out = F.grid_sample(maps.to(torch.float64), grid[None, None], mode="bilinear", padding_mode="border",
+                        align_corners=True)
+    return out[0, :, 0]
+
+
 def warp_by_flow(source: torch.Tensor, flow: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Sample ``source`` at ``x + flow(x)`` (bilinear backward warping).
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.geometry.two_view import normalise_points
+from dfvo.geometry.two_view import normalised_rays
+from dfvo.matching.flow_warp import inside_image, sample_at_pixels
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, build_pyramid, lucas_kanade
 from dfvo.tracking.config import ScaleFilterConfig
 from dfvo.tracking.ground_plane import parallax_deg
@@ -37,11 +37,6 @@ class MiddleDepths:
 
     pts: torch.Tensor
     depth: torch.Tensor
-
-
-def _rays(pts: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    x = normalise_points(pts.to(torch.float64), K.to(torch.float64))
-    return torch.cat([x, torch.ones_like(x[..., :1])], -1)
 
 
 def middle_depths(T_cur_prev: torch.Tensor, K: torch.Tensor, pts_prev: torch.Tensor, pts_cur: torch.Tensor,
@@ -62,19 +57,10 @@ def middle_depths(T_cur_prev: torch.Tensor, K: torch.Tensor, pts_prev: torch.Ten
     Kb = K.reshape(1, 3, 3).to(torch.float64)
     R, t = T[None, :3, :3], T[None, :3, 3] / length
     z_i, z_j, front = triangulated_depths(R, t, Kb, pts_prev[None], pts_cur[None])
-    X_i = _rays(pts_prev[None], Kb) * z_i[..., None]
+    X_i = normalised_rays(pts_prev[None], Kb) * z_i[..., None]
     keep = rows[None] & front & torch.isfinite(z_j) & (parallax_deg(X_i, t, R) >= min_parallax_deg)
     keep = keep[0]
     return MiddleDepths(pts_cur.to(torch.float64)[keep].clone(), (length * z_j[0][keep]).clone())
-
-
-def _sample(image: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples (C,M) of image (1,C,H,W) at pixels (M,2) (align_corners: pixel centres at integers)."""
-    H, W = image.shape[-2:]
-    g = torch.stack([pts[:, 0] / max(W - 1, 1) * 2 - 1, pts[:, 1] / max(H - 1, 1) * 2 - 1], -1)
-    out = F.grid_sample(image.to(torch.float64), g.to(torch.float64)[None, None], mode="bilinear",
-                        padding_mode="border", align_corners=True)
-    return out[0, :, 0]
 
 
 @dataclass
@@ -98,7 +84,7 @@ def _refined_motion(pts_j: torch.Tensor, flow: torch.Tensor, grey_pair: tuple[to
     pyramid = build_pyramid(torch.cat([grey_pair[0], grey_pair[1]]).to(torch.float32), cfg.levels, cfg.sigma)
     j, k = torch.zeros(1, dtype=torch.long), torch.ones(1, dtype=torch.long)
     p = pts_j.to(torch.float32)[None]
-    u, ok_f = lucas_kanade(pyramid, j, k, p, _sample(flow, pts_j).T.to(torch.float32)[None], ok[None], cfg)
+    u, ok_f = lucas_kanade(pyramid, j, k, p, sample_at_pixels(flow, pts_j).T.to(torch.float32)[None], ok[None], cfg)
     v, ok_b = lucas_kanade(pyramid, k, j, p + u, -u, ok_f, cfg, cfg.backward_iterations)
     incon = torch.where(ok_f & ok_b, (u + v).norm(dim=-1), torch.full_like(u[..., 0], float("inf")))
     return pts_j + u[0].to(torch.float64), incon[0].to(torch.float64)
@@ -131,16 +117,16 @@ def relative_scale(prev: MiddleDepths | None, flow: torch.Tensor, inconsistency:
     KORNIA_CHECK(inconsistency.shape[-2:] == flow.shape[-2:], "relative_scale: flow and inconsistency sizes differ")
     H, W = flow.shape[-2:]
     pts_j = prev.pts
-    inside_j = (pts_j[:, 0] >= 0) & (pts_j[:, 0] <= W - 1) & (pts_j[:, 1] >= 0) & (pts_j[:, 1] <= H - 1)
+    inside_j = inside_image(pts_j, H, W)
     if grey_pair is None:
-        pts_k = pts_j + _sample(flow, pts_j).T
-        incon = _sample(inconsistency.reshape(1, 1, H, W), pts_j)[0]
+        pts_k = pts_j + sample_at_pixels(flow, pts_j).T
+        incon = sample_at_pixels(inconsistency.reshape(1, 1, H, W), pts_j)[0]
     else:
         pts_k, incon = _refined_motion(pts_j, flow, grey_pair, inside_j, point_refinement)
-    inside_k = (pts_k[:, 0] >= 0) & (pts_k[:, 0] <= W - 1) & (pts_k[:, 1] >= 0) & (pts_k[:, 1] <= H - 1)
+    inside_k = inside_image(pts_k, H, W)
     Kd, Rd, td = K.reshape(1, 3, 3).to(torch.float64), R.to(torch.float64), t.to(torch.float64)
     z_j, _, front = triangulated_depths(Rd, td, Kd, pts_j[None], pts_k[None])
-    X_j = _rays(pts_j[None], Kd) * z_j[..., None]
+    X_j = normalised_rays(pts_j[None], Kd) * z_j[..., None]
     ok = (inside_j & inside_k & (incon <= max_inconsistency))[None] & front & \
         (parallax_deg(X_j, td, Rd) >= min_parallax_deg) & (prev.depth[None] > 0)
     ok = ok[0]

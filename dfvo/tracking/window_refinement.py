@@ -36,13 +36,12 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from dfvo.geometry.essential_refine import skew, so3_exp
-from dfvo.geometry.pose_covariance import so3_log, symmetric
+from dfvo.geometry.pose_covariance import so3_log, step_error, symmetric
 from dfvo.geometry.se3 import se3_inverse
-from dfvo.geometry.two_view import ray_depths
-from dfvo.matching.flow_warp import inside_image, normalise_pixels
+from dfvo.geometry.two_view import normalised_rays, ray_depths
+from dfvo.matching.flow_warp import inside_image, sample_at_pixels
 from dfvo.tracking.config import WindowConfig
 from dfvo.tracking.scale import sample_depth
 
@@ -95,9 +94,7 @@ def _step_errors(poses: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
     """(...,n-1,6) errors ``[phi, dt]`` of the window's steps ``T_0,k-1^-1 T_0,k`` of (...,n,4,4) poses against
     the tracker's (n-1,4,4), in :mod:`dfvo.geometry.pose_covariance`'s convention (the truth there is the
     tracker's step here: the prior)."""
-    S = se3_inverse(poses[..., :-1, :, :].reshape(-1, 4, 4)).reshape(poses[..., :-1, :, :].shape) @ poses[..., 1:, :, :]
-    phi = so3_log(steps[..., :3, :3] @ S[..., :3, :3].transpose(-1, -2))
-    return torch.cat([phi, steps[..., :3, 3] - S[..., :3, 3]], -1)
+    return step_error(se3_inverse(poses[..., :-1, :, :]) @ poses[..., 1:, :, :], steps)
 
 
 class _Geometry:
@@ -108,16 +105,13 @@ class _Geometry:
         M, n, _ = obs.shape
         seen = torch.isfinite(obs).all(-1)  # (M,n)
         self.anchor = seen.to(torch.int8).argmax(1)  # first seen frame (contiguous tracks)
-        idx = torch.arange(M)
-        Kinv = torch.linalg.inv(prob.K)
-        uv = obs[idx, self.anchor]
-        self.ray = torch.cat([uv, torch.ones_like(uv[:, :1])], -1) @ Kinv.T  # (M,3), z = 1
+        self.ray = normalised_rays(obs[torch.arange(M), self.anchor][None], prob.K[None])[0]  # (M,3), z = 1
         later = seen & (torch.arange(n)[None] > self.anchor[:, None])
         self.track, self.view = later.nonzero(as_tuple=True)  # (O,) each observation after the anchor
         self.uv = obs[self.track, self.view]
         self.src = self.anchor[self.track].long()
         self.last = torch.where(seen, torch.arange(n)[None].expand(M, n), -1).max(1).values
-        self.M, self.n = M, n
+        self.M = M
 
 
 def _project(geo: _Geometry, poses: torch.Tensor, rho: torch.Tensor, K: torch.Tensor
@@ -170,13 +164,11 @@ def _initial_depths(geo: _Geometry, poses: torch.Tensor, prob: WindowProblem, mi
     conditioned, ``c`` times its CNN depth (or the median triangulated depth without one)."""
     idx = torch.arange(geo.M)
     T_rel = se3_inverse(poses[geo.last]) @ poses[geo.anchor]
-    uv_last = prob.obs[idx, geo.last]
-    Kinv = torch.linalg.inv(prob.K)
-    x_last = (torch.cat([uv_last, torch.ones_like(uv_last[:, :1])], -1) @ Kinv.T)[:, :2]
+    ray_l = normalised_rays(prob.obs[idx, geo.last][None], prob.K[None])[0]
+    x_last = ray_l[:, :2]
     z_a, z_l = ray_depths(T_rel[:, None, :3, :3], T_rel[:, None, :3, 3], geo.ray[:, None, :2], x_last[:, None])
     z_a, z_l = z_a[:, 0, 0], z_l[:, 0, 0]
     Rray = (T_rel[:, :3, :3] @ geo.ray[..., None])[..., 0]
-    ray_l = torch.cat([x_last, torch.ones_like(x_last[:, :1])], -1)
     cos = (Rray * ray_l).sum(-1) / (Rray.norm(dim=-1) * ray_l.norm(dim=-1))
     parallax = torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
     good = (z_a > 0) & (z_l > 0) & (parallax >= min_parallax_deg) & torch.isfinite(z_a)
@@ -331,16 +323,16 @@ class WindowRefiner:
         H, Wd = flow.shape[-2:]
         # the depth of frame k-1 (the newest column) where tracks see it
         last = self.obs[:, -1]
-        self.zcnn[:, -1] = torch.where(torch.isfinite(self.zcnn[:, -1]), self.zcnn[:, -1],
-                                       self._depth_at(depth_prev, last))
+        self.zcnn[:, -1] = self._depth_at(depth_prev, last)  # NaN so far: a column is filled when its frame is k-1
         # carry the live tracks into frame k
         moved = torch.full_like(last, float("nan"))
-        if len(last):
-            f, inc = _sample(flow, last), _sample(inconsistency, last)[:, 0]
-            q = last + f
-            ok = self.alive & (inc < cfg.max_inconsistency) & inside_image(q, H, Wd) & torch.isfinite(q).all(-1)
-            moved = torch.where(ok[:, None], q, moved)
-            self.alive = ok
+        live = self.alive.nonzero(as_tuple=True)[0]  # seen in frame k-1
+        if len(live):
+            q = last[live] + sample_at_pixels(flow, last[live]).T
+            carried = (sample_at_pixels(inconsistency, last[live])[0] < cfg.max_inconsistency) & inside_image(q, H, Wd)
+            moved[live[carried]] = q[carried]
+            self.alive = torch.zeros_like(self.alive)
+            self.alive[live[carried]] = True
         self.obs = torch.cat([self.obs[:, 1:], moved[:, None]], 1)
         self.zcnn = torch.cat([self.zcnn[:, 1:], torch.full_like(self.zcnn[:, :1], float("nan"))], 1)
         self._start_tracks(pts_prev.detach().to("cpu", torch.float64), pts_cur.detach().to("cpu", torch.float64),
@@ -410,15 +402,6 @@ def _cells(pts: torch.Tensor, cell_px: int, cols: int) -> torch.Tensor:
     """(N,) long cell index of (N,2) pixels (inside the image) on a grid of ``cell_px`` cells ``cols`` wide."""
     q = (pts / cell_px).floor().long()
     return q[:, 1] * cols + q[:, 0]
-
-
-def _sample(maps: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Bilinear (1,C,H,W) maps at (N,2) pixels -> (N,C) float64 (border-clamped; NaN positions read pixel 0)."""
-    H, W = maps.shape[-2:]
-    g = torch.nan_to_num(normalise_pixels(pts, H, W), nan=-1.0)
-    out = F.grid_sample(maps.to(torch.float64), g[None, None], mode="bilinear", padding_mode="border",
-                        align_corners=True)
-    return out[0, :, 0].T
 
 
 def _whitening(covariance: torch.Tensor) -> torch.Tensor:
