@@ -32,6 +32,19 @@ def _require(path: Path) -> Path:
     return path
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _runs_outside_the_repository(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Training runs and caches that a test does not place itself (train.py's default runs_dir) go to a temporary
+    folder, never into the repository's runs/ (nor a developer's $DFVO_RUNS_DIR)."""
+    saved = os.environ.get("DFVO_RUNS_DIR")
+    os.environ["DFVO_RUNS_DIR"] = str(tmp_path_factory.mktemp("runs"))
+    yield
+    if saved is None:
+        os.environ.pop("DFVO_RUNS_DIR", None)
+    else:
+        os.environ["DFVO_RUNS_DIR"] = saved
+
+
 @pytest.fixture
 def kitti_odom_root() -> Path:
     """``../shared/data/kitti_odom`` (sequence 06, frames 0-50, grayscale stereo, poses)."""

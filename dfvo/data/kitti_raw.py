@@ -35,6 +35,7 @@ from dfvo.data.calibration import (
     stereo_baseline,
     stereo_transform,
 )
+from dfvo.data.frame_cache import DecodedFrames
 from dfvo.data.image_io import DatasetError, image_size, list_images, read_image, require_dir, require_file
 from dfvo.data.transforms import check_working_size, resize_with_intrinsics
 
@@ -172,9 +173,24 @@ class _Drive:
             raise DatasetError(f"{drive_dir}: oxts/data has {len(poses)} packets but image_02/data has "
                                f"{len(self.left)} images; expected one packet per image")
         self.poses = poses
+        self.cached: dict[str, DecodedFrames] | None = None
 
     def load(self, path: Path) -> torch.Tensor:
         return read_image(path, size=self.size, expected_size=self.native_size)
+
+    def use_cache(self, cache_dir: str | Path) -> None:
+        """Read the frames from memory-mapped caches of the decoded images in ``cache_dir``
+        (:class:`dfvo.data.frame_cache.DecodedFrames`; written on first use)."""
+        name = self.dir.name  # DATE_drive_NNNN_sync
+        self.cached = {"left": DecodedFrames(self.left, self.size, self.load, cache_dir, f"{name}_image_02")}
+        if self.right is not None:
+            self.cached["right"] = DecodedFrames(self.right, self.size, self.load, cache_dir, f"{name}_image_03")
+
+    def frame(self, camera: str, i: int) -> torch.Tensor:
+        """Frame ``i`` of ``camera`` (``left``: image_02, ``right``: image_03), (3,H,W) float32 in [0,1]."""
+        if self.cached is not None:
+            return self.cached[camera][i]
+        return self.load((self.left if camera == "left" else self.right)[i])
 
 
 class KittiRawSnippets(Dataset):
@@ -188,6 +204,8 @@ class KittiRawSnippets(Dataset):
             None: every drive found.
         stereo: add ``image_right`` and ``T_right_left``.
         temporal: add ``image_prev``/``image_next`` (targets are then frames 1..N-2 of each drive).
+        cache_dir: read the decoded frames from memory-mapped caches there (written on first use:
+            :mod:`dfvo.data.frame_cache`); None: decode every frame when it is read.
 
     Raises:
         DatasetNotFoundError: missing root, image folder or calibration file.
@@ -196,13 +214,16 @@ class KittiRawSnippets(Dataset):
     """
 
     def __init__(self, root: str | Path, height: int | None, width: int | None, drives: list[str] | None = None,
-                 stereo: bool = True, temporal: bool = True) -> None:
+                 stereo: bool = True, temporal: bool = True, cache_dir: str | Path | None = None) -> None:
         if not (stereo or temporal):
             raise ValueError("KittiRawSnippets: at least one of stereo / temporal must be True")
         self.root = require_dir(root, "KITTI raw root")
         size = check_working_size(height, width, f"KittiRawSnippets({self.root})")
         self.stereo, self.temporal = stereo, temporal
         self.drives = [_Drive(d, stereo, size) for d in _find_drives(self.root, drives)]
+        if cache_dir is not None:
+            for drive in self.drives:
+                drive.use_cache(cache_dir)
         margin = 1 if temporal else 0
         self.samples: list[tuple[int, int]] = [(k, i) for k, drive in enumerate(self.drives)
                                                for i in range(margin, len(drive.left) - margin)]
@@ -216,13 +237,13 @@ class KittiRawSnippets(Dataset):
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         k, i = self.samples[index]
         drive = self.drives[k]
-        sample: dict[str, torch.Tensor] = {"image": drive.load(drive.left[i]), "K": drive.K.clone(),
+        sample: dict[str, torch.Tensor] = {"image": drive.frame("left", i), "K": drive.K.clone(),
                                            "index": torch.tensor(i)}
         if self.temporal:
-            sample["image_prev"] = drive.load(drive.left[i - 1])
-            sample["image_next"] = drive.load(drive.left[i + 1])
+            sample["image_prev"] = drive.frame("left", i - 1)
+            sample["image_next"] = drive.frame("left", i + 1)
         if self.stereo and drive.right is not None:
-            sample["image_right"] = drive.load(drive.right[i])
+            sample["image_right"] = drive.frame("right", i)
             sample["T_right_left"] = stereo_transform(drive.baseline)
         if drive.poses is not None:
             sample["pose"] = torch.as_tensor(drive.poses[i], dtype=torch.float32)

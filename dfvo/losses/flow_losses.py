@@ -23,8 +23,7 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.losses.photometric import ssim_l1_error
 from dfvo.losses.smoothness import edge_aware_smoothness
-from dfvo.matching.consistency import forward_backward_inconsistency
-from dfvo.matching.flow_warp import warp_by_flow
+from dfvo.matching.flow_warp import flow_magnitude, warp_by_flow
 
 
 def scale_weights(num_scales: int) -> list[float]:
@@ -52,7 +51,7 @@ def endpoint_error(flow: torch.Tensor, flow_gt: torch.Tensor, valid: torch.Tenso
     KORNIA_CHECK_SHAPE(flow, ["B", "2", "H", "W"])
     KORNIA_CHECK(flow.shape == flow_gt.shape,
                  f"endpoint_error: flow {tuple(flow.shape)} and flow_gt {tuple(flow_gt.shape)} differ")
-    err = (flow - flow_gt).norm(dim=1, keepdim=True)
+    err = flow_magnitude(flow - flow_gt)
     if valid is None:
         return err.mean()
     KORNIA_CHECK_SHAPE(valid, ["B", "1", "H", "W"])
@@ -95,10 +94,21 @@ def occlusion_mask(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, alpha1: float
         ``(visible, inconsistency)``: (B,1,H,W) bool (target inside image j and consistent) and the
         (B,1,H,W) inconsistency in pixels (+inf outside image j).
     """
-    diff = forward_backward_inconsistency(flow_fwd, flow_bwd)
     bwd_at, inside = warp_by_flow(flow_bwd, flow_fwd)
-    mag2 = flow_fwd.pow(2).sum(1, keepdim=True) + bwd_at.pow(2).sum(1, keepdim=True)
+    return _occlusion_from_warp(flow_fwd, bwd_at, inside, alpha1, alpha2)
+
+
+@torch.no_grad()
+def _occlusion_from_warp(flow_fwd: torch.Tensor, bwd_at: torch.Tensor, inside: torch.Tensor, alpha1: float,
+                         alpha2: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`occlusion_mask` from the backward flow already sampled at the forward targets (``bwd_at``, (B,2,H,W))
+    and the targets' ``inside`` mask (B,1,H,W): the inconsistency is
+    :func:`~dfvo.matching.consistency.forward_backward_inconsistency`'s, computed from the same warp."""
+    diff = flow_magnitude(flow_fwd + bwd_at)
     finite = torch.isfinite(diff)
+    diff = torch.where(inside & finite, diff, torch.full_like(diff, float("inf")))
+    finite = torch.isfinite(diff)
+    mag2 = flow_fwd.pow(2).sum(1, keepdim=True) + bwd_at.pow(2).sum(1, keepdim=True)
     visible = inside & finite & (torch.where(finite, diff, torch.zeros_like(diff)).pow(2) <= alpha1 * mag2 + alpha2)
     return visible, diff
 
@@ -106,15 +116,17 @@ def occlusion_mask(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, alpha1: float
 def _direction_terms(img_i: torch.Tensor, img_j: torch.Tensor, flow_ij: torch.Tensor, flow_ji: torch.Tensor,
                      alpha: float, occlusion: bool, occ_alpha1: float,
                      occ_alpha2: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    warped, inside = warp_by_flow(img_j, flow_ij)
+    # one warp per direction: image j and the backward flow sampled together at x + F_ij(x) (grid_sample treats
+    # channels independently, so this equals two warps; its gradient w.r.t. the flow is their sum)
+    both, inside = warp_by_flow(torch.cat([img_j, flow_ji.to(img_j.dtype)], 1), flow_ij)
+    warped, bwd_at = both[:, :3], both[:, 3:]
     if occlusion:
-        visible, _ = occlusion_mask(flow_ij, flow_ji, occ_alpha1, occ_alpha2)
+        visible, _ = _occlusion_from_warp(flow_ij.detach(), bwd_at.detach(), inside, occ_alpha1, occ_alpha2)
     else:
         visible = inside
     photo = _masked_mean(ssim_l1_error(img_i, warped, alpha=alpha), visible)
     # ||F|| in pixels, not mean-normalised (a still scene has ||F|| ~ 0; the paper regularises ||F|| itself).
-    smooth = edge_aware_smoothness(flow_ij.norm(dim=1, keepdim=True), img_i, normalise=False)
-    bwd_at, _ = warp_by_flow(flow_ji, flow_ij)
+    smooth = edge_aware_smoothness(flow_magnitude(flow_ij), img_i, normalise=False)
     # sqrt with a small epsilon: same value as the consistency module's norm, finite gradient at 0.
     fc_map = ((flow_ij + bwd_at).pow(2).sum(1, keepdim=True) + 1e-6).sqrt()
     fc = _masked_mean(fc_map, visible)

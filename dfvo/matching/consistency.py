@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.matching.flow_warp import warp_by_flow
+from dfvo.matching.flow_warp import flow_magnitude, warp_by_flow
 
 
 def forward_backward_inconsistency(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor) -> torch.Tensor:
@@ -35,9 +35,6 @@ def forward_backward_inconsistency(flow_fwd: torch.Tensor, flow_bwd: torch.Tenso
                  f"forward_backward_inconsistency: flow_fwd {tuple(flow_fwd.shape)} and flow_bwd "
                  f"{tuple(flow_bwd.shape)} must have the same shape")
     bwd_at_target, valid = warp_by_flow(flow_bwd, flow_fwd)
-    d = flow_fwd + bwd_at_target
-    # explicit sum of squares: torch's norm over the channel dimension is a slow strided reduction on CPU; the
-    # clamp keeps the gradient finite (zero) at exactly consistent pixels, so losses can use this function
-    diff = (d[:, 0:1].square() + d[:, 1:2].square()).clamp_min(1e-20).sqrt()
+    diff = flow_magnitude(flow_fwd + bwd_at_target)  # finite gradient at exactly consistent pixels: losses use it
     valid = valid & torch.isfinite(diff)
     return torch.where(valid, diff, torch.full_like(diff, float("inf")))

@@ -22,6 +22,16 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from dfvo.geometry.camera import pixel_grid
 
 
+def flow_magnitude(flow: torch.Tensor) -> torch.Tensor:
+    """Per-pixel length ``sqrt(u^2 + v^2)`` (B,1,H,W) of a (B,2,H,W) flow (pixels).
+
+    An explicit sum of squares: ``torch.linalg.vector_norm`` over the channel dimension is a slow strided reduction
+    on CPUs (~20x slower forward and backward at 4x2x96x320). The square is clamped at 1e-20 before the root, so
+    the gradient stays finite (zero) where the flow is exactly zero, and a zero flow measures 1e-10.
+    """
+    return (flow[:, 0:1].square() + flow[:, 1:2].square()).clamp_min(1e-20).sqrt()
+
+
 def flow_to_sample_points(flow: torch.Tensor) -> torch.Tensor:
     """Absolute target positions ``x + flow(x)`` in pixels.
 

@@ -130,7 +130,10 @@ class DepthDecoder(nn.Module):
                 x = torch.cat([x, features[i - 1]], dim=1)
             x = self.up1[i](x)
             if i in scales:
-                out[i] = torch.sigmoid(self.heads[i](x))
+                # the heads in float32 under autocast (bf16 training): bf16's 8-bit mantissa would quantise the
+                # disparity logits by ~1-2 % of the depth
+                with torch.autocast(x.device.type, enabled=False):
+                    out[i] = torch.sigmoid(self.heads[i](x.float()))
         return out
 
 

@@ -33,7 +33,9 @@ class PoseDecoder(nn.Module):
         )
 
     def forward(self, feature: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = POSE_OUTPUT_SCALE * self.net(feature).mean(dim=(2, 3))
+        x = self.net[:-1](feature)
+        with torch.autocast(x.device.type, enabled=False):  # the pose in float32 under autocast (bf16 training)
+            out = POSE_OUTPUT_SCALE * self.net[-1](x.float()).mean(dim=(2, 3))
         return out[:, :3], out[:, 3:]
 
 
@@ -57,7 +59,8 @@ class PoseNet(nn.Module):
 
     def forward(self, image_a: torch.Tensor, image_b: torch.Tensor) -> torch.Tensor:
         axis_angle, translation = self.parameters_of(image_a, image_b)
-        return pose_from_axis_angle(axis_angle, translation)
+        with torch.autocast(axis_angle.device.type, enabled=False):
+            return pose_from_axis_angle(axis_angle, translation)
 
 
 def pose_to_axis_angle(T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

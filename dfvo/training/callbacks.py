@@ -14,7 +14,8 @@ from lightning.pytorch.callbacks import Callback
 
 from dfvo.io.checkpoint import MODEL_IDENTITY_KEY
 
-__all__ = ["NaNGuard", "ModelIdentity", "LoggedStepAfterResume", "ValidateAtStop", "ChannelsLast", "ConsoleMetrics"]
+__all__ = ["NaNGuard", "ModelIdentity", "LoggedStepAfterResume", "ValidateAtStop", "ChannelsLast", "ConsoleMetrics",
+           "total_steps", "eta_text"]
 
 log = logging.getLogger("dfvo.training")
 
@@ -118,10 +119,32 @@ def _scalars(metrics: dict[str, Any], prefix: str) -> str:
     return " ".join(items)
 
 
+def total_steps(trainer: L.Trainer) -> int | None:
+    """The step count the run ends at (``max_steps``, else epochs x batches per epoch; None: unknown)."""
+    if trainer.max_steps > 0:
+        return int(trainer.max_steps)
+    try:
+        total = trainer.estimated_stepping_batches
+    except Exception:  # noqa: BLE001 - Lightning raises several kinds before the loaders exist
+        return None
+    return int(total) if math.isfinite(total) else None
+
+
+def eta_text(seconds: float) -> str:
+    """``1d 02:03`` / ``02:03`` (hours:minutes) / ``--`` for an unknown time."""
+    if not math.isfinite(seconds) or seconds < 0:
+        return "--"
+    minutes = int(round(seconds / 60.0))
+    days, minutes = divmod(minutes, 24 * 60)
+    text = f"{minutes // 60:02d}:{minutes % 60:02d}"
+    return f"{days}d {text}" if days else text
+
+
 class ConsoleMetrics(Callback):
-    """One log line every ``every`` training steps (step, learning rate, steps per minute since the start or resume,
-    the logged ``train/`` scalars) and one after each validation (the ``val/`` scalars): a readable record of a run
-    without a progress bar (``trainer.print_every_n_steps``), e.g. one in the background writing to a log file."""
+    """One log line every ``every`` training steps (step of the total, learning rate, steps per hour since the start
+    or resume, the time left at that rate, the logged ``train/`` scalars) and one after each validation (the ``val/``
+    scalars): a readable record of a run without a progress bar (``trainer.print_every_n_steps``), e.g. one in the
+    background writing to a log file (``scripts/campaign.sh``)."""
 
     def __init__(self, every: int) -> None:
         self.every = int(every)
@@ -129,8 +152,8 @@ class ConsoleMetrics(Callback):
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._start = (time.monotonic(), int(trainer.global_step))
-        log.info("training from step %d of %s", trainer.global_step,
-                 trainer.max_steps if trainer.max_steps > 0 else trainer.num_training_batches)
+        total = total_steps(trainer)
+        log.info("training from step %d of %s", trainer.global_step, total if total is not None else "?")
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
@@ -138,9 +161,12 @@ class ConsoleMetrics(Callback):
         if self.every <= 0 or step % self.every or self._start is None:
             return
         t0, step0 = self._start
-        rate = (step - step0) / max(time.monotonic() - t0, 1e-9) * 60.0
+        per_hour = (step - step0) / max(time.monotonic() - t0, 1e-9) * 3600.0
+        total = total_steps(trainer)
+        left = (total - step) / per_hour * 3600.0 if total is not None and per_hour > 0 else float("nan")
         lr = trainer.optimizers[0].param_groups[0]["lr"] if trainer.optimizers else float("nan")
-        log.info("step %d lr %.3g %.1f steps/min %s", step, lr, rate, _scalars(trainer.callback_metrics, "train/"))
+        log.info("step %d/%s lr %.3g %.0f steps/h ETA %s %s", step, total if total is not None else "?", lr,
+                 per_hour, eta_text(left), _scalars(trainer.callback_metrics, "train/"))
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if self.every > 0 and not trainer.sanity_checking:

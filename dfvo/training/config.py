@@ -19,10 +19,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
+from pathlib import Path
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, DictConfig
+from omegaconf import MISSING, DictConfig, OmegaConf
 
 from dfvo.training.augment import DepthAugmentConfig
 from dfvo.training.data_config import (
@@ -245,8 +246,10 @@ MODEL_SCHEMAS: dict[str, type] = {"depth": DepthModelConfig, "flow": FlowModelCo
 
 # ---------------------------------------------------------------------------------------------------- trainer
 class Precision(StrEnum):
-    """Lightning's ``precision`` values offered by ``trainer.precision`` (the field holds the value: ``32-true``...)."""
+    """``trainer.precision``: ``auto`` (bf16 mixed precision where the device computes in bf16, else fp32:
+    :mod:`dfvo.training.precision`) or one of Lightning's values (the field holds the value: ``32-true``...)."""
 
+    auto = "auto"
     fp32 = "32-true"
     bf16_mixed = "bf16-mixed"
     fp16_mixed = "16-mixed"
@@ -279,7 +282,9 @@ class TrainerConfig:
         max_epochs (paper: 20, lr drop after 15), max_steps (-1: no limit), limit_train_batches, limit_val_batches
             (null: all; an int: batches, a float: fraction), check_val_every_n_epoch, num_sanity_val_steps,
             log_every_n_steps, deterministic, gradient_clip_val: as Lightning's Trainer.
-        precision: one of :data:`PRECISIONS` (``bf16-mixed`` on a GPU; ``32-true`` the reference).
+        precision: one of :data:`PRECISIONS`: ``auto`` (default) is ``bf16-mixed`` where the CPU or GPU has bf16
+            arithmetic and ``32-true`` elsewhere (:func:`dfvo.training.precision.resolve_precision`, logged);
+            ``32-true`` forces float32 (the reference), ``bf16-mixed`` bf16 autocast.
         channels_last: convolutional networks and image batches in NHWC memory layout (pays on GPUs with mixed
             precision; measure before using it on a CPU).
         benchmark: cuDNN autotuning for fixed input sizes (null: Lightning's default).
@@ -295,6 +300,8 @@ class TrainerConfig:
             ``trainer=smoke`` keeps only ``last.ckpt``, what resuming needs).
         export_weights: write ``RUN/weights.safetensors`` (fp16, the network inference loads, with its metadata)
             whenever ``checkpoints/last.ckpt`` is written.
+        keep_weights_every_n_steps: also keep ``RUN/weights_step{N}.safetensors`` every this many steps (null: none):
+            a long run's intermediate networks, to compare afterwards.
         print_every_n_steps: one console (log) line with the step, rate, speed and logged training metrics every
             this many steps, and one per validation (0: none; for runs without a progress bar, e.g. in the
             background).
@@ -313,7 +320,7 @@ class TrainerConfig:
     limit_train_batches: int | float | None = None
     limit_val_batches: int | float | None = None
     num_sanity_val_steps: int = 0
-    precision: str = "32-true"
+    precision: str = "auto"
     deterministic: bool = False
     gradient_clip_val: float | None = None
     channels_last: bool = False
@@ -323,6 +330,7 @@ class TrainerConfig:
     checkpoint_every_n_steps: int | None = None
     keep_best: bool = True
     export_weights: bool = True
+    keep_weights_every_n_steps: int | None = None
     print_every_n_steps: int = 0
     enable_progress_bar: bool = True
     progress_refresh: int = 10
@@ -335,7 +343,8 @@ class TrainerConfig:
         if self.max_steps < -1 or self.max_steps == 0:
             raise ValueError(f"trainer.max_steps={self.max_steps}; expected -1 (no limit) or a positive count")
         positive("trainer", checkpoint_every_n_steps=self.checkpoint_every_n_steps,
-                  val_check_interval=self.val_check_interval)
+                  val_check_interval=self.val_check_interval,
+                  keep_weights_every_n_steps=self.keep_weights_every_n_steps)
         if self.print_every_n_steps < 0:
             raise ValueError(f"trainer.print_every_n_steps={self.print_every_n_steps}; expected >= 0 (0: none)")
 
@@ -349,8 +358,13 @@ class TrainConfig:
         model: depth or flow schema (``model=NAME``). data: one of :data:`TRAIN_DATA_SCHEMAS` (``data=KIND``).
         trainer: :class:`TrainerConfig` (``trainer=default|smoke|gpu|ddp``).
         name: the run folder ``runs_dir/name`` (default ``<model>_<data>``).
-        runs_dir: where runs are written (relative to the working folder).
+        runs_dir: where runs are written (default ``$DFVO_RUNS_DIR``, else ``runs`` in the working folder; long runs
+            that must outlive a session: a folder outside the work tree, e.g. ``~/dfvo-runs``; ``~`` is expanded
+            here and in the paths built on it through the ``${user_path:...}`` resolver).
         seed: global seed (weights initialisation). ckpt_path: resume exactly from a ``last.ckpt`` of the same model.
+        resume: ``auto`` continues the run ``runs_dir/name`` from its newest checkpoint (exactly, as ``ckpt_path``)
+            or starts it; ``never`` starts a new run and refuses a folder that already holds one
+            (:mod:`dfvo.training.resume`).
         threads: torch threads (0: torch's default). verbose: full tracebacks for expected errors.
     """
 
@@ -358,15 +372,23 @@ class TrainConfig:
     data: Any = MISSING
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     name: str = "${model.name}_${data.kind}"
-    runs_dir: str = "runs"
+    runs_dir: str = "${oc.env:DFVO_RUNS_DIR,runs}"
     seed: int = 0
     ckpt_path: str | None = None
+    resume: str = "never"
     threads: int = 0
     verbose: bool = False
 
 
+def user_path(path: str) -> str:
+    """The ``${user_path:PATH}`` resolver of the training configs: ``PATH`` with a leading ``~`` expanded."""
+    return str(Path(str(path)).expanduser())
+
+
 def register_configs() -> None:
-    """Store the schemas in Hydra's ConfigStore (idempotent)."""
+    """Store the schemas in Hydra's ConfigStore and the ``user_path`` resolver in OmegaConf (idempotent)."""
+    if not OmegaConf.has_resolver("user_path"):
+        OmegaConf.register_new_resolver("user_path", user_path)
     cs = ConfigStore.instance()
     cs.store(name="train_schema", node=TrainConfig)
     for task, schema in MODEL_SCHEMAS.items():

@@ -103,7 +103,9 @@ class SyntheticTrainDataConfig(WorldsTrainDataConfig):
 class KittiRawTrainDataConfig(TrainDataConfig):
     """``data=kitti_raw``: KITTI raw drives ``ROOT/DATE/DATE_drive_XXXX_sync`` (colour stereo) as snippets
     (i-s, i, i+s) for every s of ``frame_skips``; ``drives`` null: every drive under the root. Validation on the
-    synthetic worlds (true depth)."""
+    synthetic worlds (true depth). ``frame_cache_dir``: the frames decoded at the working size once, into
+    memory-mapped files there (:mod:`dfvo.data.frame_cache`; ``data/kitti_raw.yaml``: ``RUNS/frame_cache``); null:
+    every frame decoded when read."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
@@ -111,6 +113,7 @@ class KittiRawTrainDataConfig(TrainDataConfig):
     root: str | None = None
     drives: list[str] | None = None
     frame_skips: list[int] = field(default_factory=lambda: [1])
+    frame_cache_dir: str | None = None
 
 
 @dataclass
@@ -129,13 +132,14 @@ class KittiOdomTrainDataConfig(TrainDataConfig):
 @dataclass
 class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     """``data=kitti_raw_synthetic``: KITTI raw drives and synthetic worlds in one training set (``frame_skips``
-    applies to both)."""
+    applies to both; ``frame_cache_dir`` as ``data=kitti_raw``)."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
     kind: str = "kitti_raw_synthetic"
     root: str | None = None
     drives: list[str] | None = None
+    frame_cache_dir: str | None = None
 
 
 def _training_seeds() -> list[int]:

@@ -135,13 +135,15 @@ class DFVODataModule(L.LightningDataModule):
     def _kitti_raw(self, data: KittiRawTrainDataConfig | KittiRawSyntheticTrainDataConfig) -> Dataset:
         root = data_root(data)
         drives = list(data.drives) if data.drives else None
-        stereo, skips = self._need_stereo(), self.frame_skips
+        stereo, skips, cache = self._need_stereo(), self.frame_skips, data.frame_cache_dir
         try:
             if skips == [1]:
-                return KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo, temporal=True)
+                return KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo, temporal=True,
+                                        cache_dir=cache)
             # KittiRawSnippets has no gap: its frame-level form (temporal=False) needs stereo=True, so snippets with
             # gaps read the right images too (dropped below for models without stereo)
-            frames = KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=True, temporal=False)
+            frames = KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=True, temporal=False,
+                                      cache_dir=cache)
         except (OSError, ValueError) as err:
             raise type(err)(f"data={self.name} (data.root={root}): {err}") from err
         sequences: dict[int, list[int]] = {}

@@ -41,6 +41,7 @@ from dfvo.models.pose_net import PoseNet
 from dfvo.training.augment import augment_depth_batch
 from dfvo.training.config import DepthModelConfig, typed
 from dfvo.training.hparams import recorded_config
+from dfvo.training.precision import float32_losses
 
 
 class DepthPoseModule(L.LightningModule):
@@ -123,8 +124,8 @@ class DepthPoseModule(L.LightningModule):
 
     def _losses(self, batch: dict[str, torch.Tensor], net_inputs: dict[str, torch.Tensor] | None = None
                 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict]:
-        image, K = batch["image"], batch["K"].float()
-        B, _, H, W = image.shape
+        image = batch["image"]
+        B = image.shape[0]
         net = net_inputs or {}
         sources = self._sources(batch, net)
         temporal = [s for s in sources if s[0] != "stereo"]
@@ -135,29 +136,45 @@ class DepthPoseModule(L.LightningModule):
             disps = {s: d[:B] for s, d in disps_all.items()}
         else:
             disps = self.depth_net(net.get("image", image))
+        with float32_losses(image.device):  # the networks may run under bf16 autocast; the losses never do
+            return self._losses_from(batch, sources, disps, disps_all if self.w_consistency > 0 else None)
+
+    def _losses_from(self, batch: dict[str, torch.Tensor], sources: list[tuple[str, torch.Tensor, torch.Tensor]],
+                     disps: dict[int, torch.Tensor], disps_all: dict[int, torch.Tensor] | None
+                     ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict]:
+        image, K = batch["image"], batch["K"].float()
+        B, _, H, W = image.shape
+        sources = [(name, src, T.float()) for name, src, T in sources]
+        disps = {s: d.float() for s, d in disps.items()}
+        # the source views in one batch of n*B (view-major): one reprojection and one SSIM per scale for all of them
+        n = len(sources)
+        srcs = torch.cat([src for _, src, _ in sources])
+        T_all, K_all, image_all = torch.cat([T for _, _, T in sources]), K.repeat(n, 1, 1), image.repeat(n, 1, 1, 1)
         identity = []
         if self.automask:
-            identity = [ssim_l1_error(image, src, self.alpha) + 1e-5 for _, src, _ in sources]
+            identity = list((ssim_l1_error(image_all, srcs, self.alpha) + 1e-5).split(B))
         terms: dict[str, torch.Tensor] = {}
         total = image.new_zeros(())
         vis: dict[str, torch.Tensor] = {}
         for s in SCALES:
             disp_full = F.interpolate(disps[s], size=(H, W), mode="bilinear", align_corners=False)
             depth = disp_to_depth(disp_full, self.min_depth, self.max_depth)
-            errors, valids, diffs, dvalids = list(identity), [None] * len(identity), [], []
-            for k, (name, src, T) in enumerate(sources):
-                rep = reproject(src, depth, T, K)
-                errors.append(ssim_l1_error(image, rep.warped, self.alpha))
-                valids.append(rep.valid)
+            rep = reproject(srcs, depth.repeat(n, 1, 1, 1), T_all, K_all)
+            errors = [*identity, *ssim_l1_error(image_all, rep.warped, self.alpha).split(B)]
+            valids = [None] * len(identity) + list(rep.valid.split(B))
+            diffs, dvalids = [], []
+            for k, (name, _, _) in enumerate(sources):
+                view = slice(k * B, (k + 1) * B)
                 if s == 0:
-                    vis[name] = rep.warped.detach()
+                    vis[name] = rep.warped[view].detach()
                 if self.w_consistency > 0 and name != "stereo":
-                    d_src = disp_to_depth(disps_all[s][(k + 1) * B:(k + 2) * B], self.min_depth, self.max_depth)
+                    d_src = disp_to_depth(disps_all[s][(k + 1) * B:(k + 2) * B].float(), self.min_depth,
+                                          self.max_depth)
                     d_src = F.interpolate(d_src, size=(H, W), mode="bilinear", align_corners=False)
-                    sampled = F.grid_sample(d_src, rep.grid, mode="bilinear", padding_mode="border",
+                    sampled = F.grid_sample(d_src, rep.grid[view], mode="bilinear", padding_mode="border",
                                             align_corners=True)
-                    diffs.append(inverse_depth_difference(rep.depth_in_source, sampled))
-                    dvalids.append(rep.valid)
+                    diffs.append(inverse_depth_difference(rep.depth_in_source[view], sampled))
+                    dvalids.append(rep.valid[view])
             best, mask = min_over_views(errors, valids)
             photo = (best * mask).sum() / mask.sum().clamp_min(1)
             small = F.interpolate(image, size=disps[s].shape[-2:], mode="bilinear", align_corners=False)

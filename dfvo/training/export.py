@@ -24,8 +24,10 @@ Load it with ``infer.py flow.checkpoint=RUN/weights.safetensors`` (or ``depth.ch
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
+from weakref import proxy
 
 import lightning as L
 import torch
@@ -33,9 +35,11 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, save_weights
 
-__all__ = ["WEIGHTS_NAME", "weights_metadata", "export_weights", "LastCheckpoint"]
+__all__ = ["WEIGHTS_NAME", "PREVIOUS_NAME", "weights_metadata", "export_weights", "durable_replace",
+           "LastCheckpoint", "KeepWeights"]
 
 WEIGHTS_NAME = "weights.safetensors"
+PREVIOUS_NAME = "previous.ckpt"
 
 
 def weights_metadata(network_meta: dict[str, str], height: int | None, width: int | None,
@@ -57,9 +61,44 @@ def export_weights(module: L.LightningModule, path: str | Path, metadata: dict[s
     return save_weights(net, path, {**meta, **metadata}, dtype=dtype)
 
 
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def durable_replace(tmp: Path, path: Path, keep_previous: Path | None = None) -> None:
+    """Move the fully written ``tmp`` onto ``path`` so that a SIGKILL or a power loss at any moment leaves a whole
+    file at ``path`` (the old one or the new one): ``tmp`` is flushed to disk first, the rename is atomic, and the
+    folder entry is flushed after it. ``keep_previous``: the old ``path`` is kept there (a hard link made before the
+    rename, itself swapped in atomically), one more whole file to fall back on."""
+    _fsync(tmp)
+    if keep_previous is not None and path.is_file():
+        link = keep_previous.with_name(keep_previous.name + ".tmp")
+        link.unlink(missing_ok=True)
+        try:
+            os.link(path, link)
+        except OSError:  # a file system without hard links: no previous copy
+            pass
+        else:
+            os.replace(link, keep_previous)
+    os.replace(tmp, path)
+    try:
+        _fsync(path.parent)
+    except OSError:  # some file systems cannot fsync a folder; the rename itself is done
+        pass
+
+
 class LastCheckpoint(ModelCheckpoint):
     """``checkpoints/last.ckpt``, rewritten at every save point (no monitor), and, when ``weights_path`` is given,
     the weights-only export refreshed each time it is written (on the global-zero process).
+
+    Every write goes to ``last.ckpt.tmp`` and replaces ``last.ckpt`` only when whole and on disk
+    (:func:`durable_replace`); the checkpoint it replaces stays as ``previous.ckpt``. A run killed at any moment
+    (SIGKILL, power) so keeps a resumable checkpoint of at most ``every_n_steps`` steps ago (``resume=auto``,
+    :mod:`dfvo.training.resume`).
 
     Args:
         dirpath: the checkpoint folder.
@@ -109,8 +148,40 @@ class LastCheckpoint(ModelCheckpoint):
             self.save_now(trainer)
 
     def _save_checkpoint(self, trainer: L.Trainer, filepath: str) -> None:
-        super()._save_checkpoint(trainer, filepath)
+        path = Path(filepath)
+        tmp = path.with_name(path.name + ".tmp")
+        trainer.save_checkpoint(str(tmp), self.save_weights_only)  # every rank takes part; global zero writes
+        if trainer.is_global_zero:
+            durable_replace(tmp, path, keep_previous=path.with_name(PREVIOUS_NAME))
+        trainer.strategy.barrier("dfvo_last_checkpoint")
+        self._last_global_step_saved = trainer.global_step
+        self._last_checkpoint_saved = filepath
+        if trainer.is_global_zero:
+            for logger in trainer.loggers:
+                logger.after_save_checkpoint(proxy(self))
         if self.weights_path is not None and trainer.is_global_zero:
             meta = weights_metadata({}, *self.size, global_step=trainer.global_step, epoch=trainer.current_epoch,
                                     source=filepath, identity=self.identity)
             export_weights(trainer.lightning_module, self.weights_path, meta)
+
+
+class KeepWeights(L.Callback):
+    """``RUN/weights_step{N}.safetensors`` (the fp16 export, as ``weights.safetensors``) at every ``every``-th
+    training step: a long run's intermediate networks, kept for choosing among them afterwards
+    (``trainer.keep_weights_every_n_steps``).
+
+    Args:
+        run_dir: the run folder. every: steps between two kept files. size, identity: the export's metadata.
+    """
+
+    def __init__(self, run_dir: str | Path, every: int, size: tuple[int | None, int | None] = (None, None),
+                 identity: str | None = None) -> None:
+        self.run_dir, self.every, self.size, self.identity = Path(run_dir), int(every), size, identity
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        step = int(trainer.global_step)
+        if step % self.every or not trainer.is_global_zero:
+            return
+        meta = weights_metadata({}, *self.size, global_step=step, epoch=trainer.current_epoch, identity=self.identity)
+        export_weights(pl_module, self.run_dir / f"weights_step{step}.safetensors", meta)

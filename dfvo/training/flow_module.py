@@ -40,6 +40,7 @@ from dfvo.geometry.camera import resize_flow
 from dfvo.io.checkpoint import find_checkpoint, load_weights
 from dfvo.losses.flow_losses import endpoint_error, multiscale_epe, occlusion_mask, self_supervised_flow_loss
 from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.flow_warp import flow_magnitude
 from dfvo.matching.selection import select_correspondences
 from dfvo.models.flow_net import FlowNet
 from dfvo.sources.networks import resize_images
@@ -47,6 +48,7 @@ from dfvo.training.config import FlowMode, FlowModelConfig, typed
 from dfvo.training.flow_augment import augment_self_supervised, augment_supervised
 from dfvo.training.flow_data import phase_at
 from dfvo.training.hparams import recorded_config
+from dfvo.training.precision import float32_losses
 from dfvo.training.sampling import step_generator
 from dfvo.vis.colour import flow_to_color, scalar_to_color
 
@@ -154,9 +156,10 @@ class FlowModule(L.LightningModule):
             if self.augment is not None and generator is not None:
                 i1, i2, ff, fb, vf, vb = augment_supervised(i1, i2, ff, fb, vf, vb, self.augment, generator)
             flows_f, flows_b = self.net.forward_backward(i1, i2, all_scales=True)
-            flows_f, flows_b = [f.float() for f in flows_f], [f.float() for f in flows_b]  # losses in fp32 (bf16 runs)
-            sup_loss, sup_terms = supervised_flow_loss(
-                flows_f, flows_b, {"flow_fwd": ff, "flow_bwd": fb, "flow_fwd_valid": vf, "flow_bwd_valid": vb})
+            with float32_losses(self.device):  # losses in fp32 in mixed-precision runs
+                flows_f, flows_b = [f.float() for f in flows_f], [f.float() for f in flows_b]
+                sup_loss, sup_terms = supervised_flow_loss(
+                    flows_f, flows_b, {"flow_fwd": ff, "flow_bwd": fb, "flow_fwd_valid": vf, "flow_bwd_valid": vb})
             loss = loss + sup_loss
             terms.update(sup_loss=sup_loss.detach(), **sup_terms)
             view = (i1, i2, flows_f[0].detach(), flows_b[0].detach(), ff)
@@ -165,7 +168,9 @@ class FlowModule(L.LightningModule):
             if self.augment is not None and generator is not None:
                 k1, k2 = augment_self_supervised(k1, k2, self.augment, generator)
             kf, kb = self.net.forward_backward(k1, k2, all_scales=True)
-            self_loss, self_terms = self._self_supervised(k1, k2, [f.float() for f in kf], [f.float() for f in kb])
+            with float32_losses(self.device):
+                self_loss, self_terms = self._self_supervised(k1.float(), k2.float(), [f.float() for f in kf],
+                                                              [f.float() for f in kb])
             loss = loss + self.self_weight * self_loss
             terms.update(self_loss=self_loss.detach(), **{f"self_{k}": v for k, v in self_terms.items()})
             if view is None:
@@ -202,7 +207,7 @@ class FlowModule(L.LightningModule):
         size = self.input_size or tuple(i1.shape[-2:])
         fwd, bwd = self.net.forward_backward(resize_images(i1, size), resize_images(i2, size))
         fwd, bwd = resize_flow(fwd.float(), tuple(gt.shape[-2:])), resize_flow(bwd.float(), tuple(gt.shape[-2:]))
-        err = (fwd - gt).norm(dim=1, keepdim=True)
+        err = flow_magnitude(fwd - gt)
         sel = select_correspondences(fwd, forward_backward_inconsistency(fwd, bwd), method="best_n",
                                      num=SELECTED_CORRESPONDENCES)
         selected = []
@@ -224,10 +229,12 @@ class FlowModule(L.LightningModule):
     def _step(self, batch: dict[str, torch.Tensor], stage: str, batch_idx: int) -> torch.Tensor:
         img1, img2 = self._pairs(batch)
         flows_fwd, flows_bwd = self.net.forward_backward(img1, img2, all_scales=True)
-        if self.mode == "supervised":
-            loss, terms = self._supervised(batch, flows_fwd, flows_bwd)
-        else:
-            loss, terms = self._self_supervised(img1, img2, flows_fwd, flows_bwd)
+        with float32_losses(self.device):  # losses in fp32 in mixed-precision runs
+            flows_fwd, flows_bwd = [f.float() for f in flows_fwd], [f.float() for f in flows_bwd]
+            if self.mode == "supervised":
+                loss, terms = self._supervised(batch, flows_fwd, flows_bwd)
+            else:
+                loss, terms = self._self_supervised(img1.float(), img2.float(), flows_fwd, flows_bwd)
             if "flow_fwd" in batch and "flow_fwd_valid" in batch:
                 b = batch["image"].shape[0]
                 terms["epe"] = endpoint_error(flows_fwd[0][-b:], batch["flow_fwd"], batch["flow_fwd_valid"].bool())

@@ -41,11 +41,14 @@ from dfvo.training.callbacks import (
 )
 from dfvo.training.config import FlowMixTrainDataConfig, TrainerConfig, data_config, model_config, typed
 from dfvo.training.datamodule import DFVODataModule
-from dfvo.training.export import WEIGHTS_NAME, LastCheckpoint
+from dfvo.training.export import WEIGHTS_NAME, KeepWeights, LastCheckpoint
 from dfvo.training.flow_data import FlowMixDataModule
+from dfvo.training.precision import resolve_precision
+from dfvo.training.resume import FINISHED_NAME, resume_point, write_finished
 from dfvo.training.stop_signals import StopOnSignal, TrainingInterrupted, stop_signals
 
-__all__ = ["model_identity", "build_module", "build_datamodule", "check_checkpoint", "build_trainer", "run_training",
+__all__ = ["model_identity", "build_module", "build_datamodule", "check_checkpoint", "build_trainer", "run_folder",
+           "run_training",
            "NaNGuard", "TrainingInterrupted"]
 
 log = logging.getLogger("dfvo.training")
@@ -89,7 +92,7 @@ def _check_accelerator(t: TrainerConfig) -> None:
 
 
 def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, one_epoch_run: bool = False,
-                  stopper: StopOnSignal | None = None) -> L.Trainer:
+                  stopper: StopOnSignal | None = None, extra_callbacks: list[Callback] | None = None) -> L.Trainer:
     """Trainer with checkpoints (last + weights export, best), LR monitor, progress bar or console lines,
     TensorBoard, the NaN guard, validation at a ``max_steps`` stop, the channels-last layout and the stop on
     SIGTERM/SIGINT, as ``cfg.trainer`` says.
@@ -100,6 +103,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, o
             metric would never exist).
         one_epoch_run: the data's one epoch is the whole run (``data=flow_mix``): ``max_epochs`` is 1.
         stopper: the signal callback of the run (None: a new one, installed only as a callback).
+        extra_callbacks: more callbacks (e.g. ``benchmarks/train_step.py``'s step timer).
     """
     t: TrainerConfig = typed(cfg.trainer, TrainerConfig, "trainer")
     _check_accelerator(t)
@@ -133,10 +137,16 @@ def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, o
         callbacks.append(TQDMProgressBar(refresh_rate=t.progress_refresh))
     if t.print_every_n_steps > 0:
         callbacks.append(ConsoleMetrics(t.print_every_n_steps))
+    if t.keep_weights_every_n_steps:
+        callbacks.append(KeepWeights(run_dir, t.keep_weights_every_n_steps, size=(data.height, data.width),
+                                     identity=identity))
+    callbacks.extend(extra_callbacks or [])
     logger: Any = False
     if t.logger:
         logger = TensorBoardLogger(save_dir=str(run_dir), name="tb", version="")
         callbacks.append(LearningRateMonitor(logging_interval="step"))
+    precision, why = resolve_precision(t.precision, t.accelerator)
+    log.info("precision %s: %s", precision, why)
     max_epochs = t.max_epochs
     if one_epoch_run and max_epochs != 1:
         log.info("data=%s: one epoch is the whole run (the steps of model.phases); trainer.max_epochs=1", data.kind)
@@ -146,7 +156,7 @@ def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, o
         max_epochs=max_epochs, max_steps=t.max_steps, log_every_n_steps=t.log_every_n_steps,
         check_val_every_n_epoch=t.check_val_every_n_epoch, val_check_interval=t.val_check_interval,
         limit_train_batches=t.limit_train_batches,
-        limit_val_batches=t.limit_val_batches, num_sanity_val_steps=t.num_sanity_val_steps, precision=t.precision,
+        limit_val_batches=t.limit_val_batches, num_sanity_val_steps=t.num_sanity_val_steps, precision=precision,
         deterministic=t.deterministic, gradient_clip_val=t.gradient_clip_val, benchmark=t.benchmark,
         enable_progress_bar=t.enable_progress_bar, default_root_dir=str(run_dir), callbacks=callbacks,
         logger=logger, enable_model_summary=False,
@@ -181,24 +191,35 @@ def quiet_lightning_output() -> None:
         if not any(isinstance(f, _NoAdverts) for f in target.filters):
             target.addFilter(_NoAdverts())
     warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)` is deprecated")
+    # a run folder with checkpoints is either resumed (resume=auto, ckpt_path=) or refused (resume=never) before
+    # Lightning sees it, so its "exists and is not empty" notice only repeats what the log already says
+    warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
 
 
-def _fit(cfg: DictConfig, stopper: StopOnSignal) -> tuple[L.Trainer, L.LightningModule, Path]:
+def run_folder(cfg: DictConfig) -> Path:
+    """``runs_dir/name`` (``~`` expanded)."""
+    return Path(str(cfg.runs_dir)).expanduser() / str(cfg.name)
+
+
+def _fit(cfg: DictConfig, stopper: StopOnSignal, extra_callbacks: list[Callback] | None
+         ) -> tuple[L.Trainer, L.LightningModule, Path]:
     if cfg.threads > 0:
         torch.set_num_threads(int(cfg.threads))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    run_dir = Path(str(cfg.runs_dir)) / str(cfg.name)
+    run_dir = run_folder(cfg)
+    start = resume_point(run_dir, model_identity(cfg), str(cfg.get("resume", "never")), cfg.ckpt_path)
+    ckpt_path = str(start.path) if start is not None else None
     run_dir.mkdir(parents=True, exist_ok=True)
-    if cfg.ckpt_path:
-        check_checkpoint(cfg.ckpt_path, cfg)
+    (run_dir / FINISHED_NAME).unlink(missing_ok=True)  # written again when this run ends normally
     datamodule = build_datamodule(cfg)  # checks the data fits the model (e.g. supervised flow needs true flow)
     module = build_module(cfg)
     trainer = build_trainer(cfg, run_dir, has_validation=datamodule.has_validation,
-                            one_epoch_run=getattr(datamodule, "one_epoch_run", False), stopper=stopper)
+                            one_epoch_run=getattr(datamodule, "one_epoch_run", False), stopper=stopper,
+                            extra_callbacks=extra_callbacks)
     if trainer.is_global_zero:
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=str(cfg.ckpt_path) if cfg.ckpt_path else None)
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path)
     except TrainingInterrupted as err:
         raise stopper.interrupted(err.step) or err from None
     except BaseException as err:  # Lightning's SIGTERMException, a loader worker killed by the same signal, ...
@@ -209,12 +230,13 @@ def _fit(cfg: DictConfig, stopper: StopOnSignal) -> tuple[L.Trainer, L.Lightning
     return trainer, module, run_dir
 
 
-def run_training(cfg: DictConfig) -> dict[str, Any]:
+def run_training(cfg: DictConfig, extra_callbacks: list[Callback] | None = None) -> dict[str, Any]:
     """Train as ``cfg`` says; return the run folder, checkpoint and weights paths, the step and the last metrics.
 
     Args:
         cfg: the composed training config (:class:`dfvo.training.config.TrainConfig`: groups ``model``, ``data``,
-            ``trainer`` and ``name``, ``runs_dir``, ``seed``, ``ckpt_path``, ``threads``).
+            ``trainer`` and ``name``, ``runs_dir``, ``seed``, ``ckpt_path``, ``resume``, ``threads``).
+        extra_callbacks: Lightning callbacks added to the run's own.
 
     Returns:
         ``run_dir``, ``last_ckpt``, ``best_ckpt`` (``last_ckpt`` when there is no best), ``weights`` (the exported
@@ -226,12 +248,14 @@ def run_training(cfg: DictConfig) -> dict[str, Any]:
     quiet_lightning_output()
     stopper = StopOnSignal()
     with stop_signals(stopper):
-        trainer, module, run_dir = _fit(cfg, stopper)
+        trainer, module, run_dir = _fit(cfg, stopper, extra_callbacks)
     last_cb = next(c for c in trainer.callbacks if isinstance(c, LastCheckpoint))
     best_cb = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and not isinstance(c, LastCheckpoint)]
     last = last_cb.best_model_path
     best = best_cb[0].best_model_path if best_cb and best_cb[0].best_model_path else last
     weights = last_cb.weights_path if last_cb.weights_path is not None and last_cb.weights_path.is_file() else None
+    if trainer.is_global_zero:
+        write_finished(run_dir, trainer.global_step, last or None)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()
                if torch.as_tensor(v).numel() == 1 and math.isfinite(float(v))}
     return {"run_dir": str(run_dir), "last_ckpt": last, "best_ckpt": best, "weights": str(weights) if weights else None,

@@ -44,7 +44,8 @@ class TrainingInterrupted(Exception):
         self.signum, self.step, self.checkpoint = int(signum), step, checkpoint
         name = signal.Signals(self.signum).name
         if checkpoint is not None:
-            text = (f"stopped by {name} at step {step}; saved {checkpoint} (resume with ckpt_path={checkpoint})")
+            text = (f"stopped by {name} at step {step}; saved {checkpoint} (resume=auto continues the run from it, as "
+                    f"ckpt_path={checkpoint} does)")
         elif step is None:
             text = f"stopped by {name} before training started; nothing to save"
         else:

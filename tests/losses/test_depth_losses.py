@@ -137,3 +137,19 @@ def test_consistency_zero_for_true_depths(world_frame: dict) -> None:
     # bilinear sampling of a piecewise-smooth depth: exact up to interpolation inside surfaces
     assert diff[static].median() < 1e-4
     assert inverse_depth_difference(rep.depth_in_source, rep.warped * 1.5)[0, 0][static].median() > 1e-2
+
+
+def test_ssim_map_is_kornias_ssim() -> None:
+    """The stacked-moment SSIM equals kornia.metrics.ssim (3x3 Gaussian window, reflect padding) to float rounding,
+    on random images and on an image against itself (1 everywhere), and its gradient is kornia's."""
+    from kornia.metrics import ssim
+
+    from dfvo.losses.photometric import ssim_map
+
+    g = torch.Generator().manual_seed(1)
+    x, y = torch.rand(2, 3, 17, 23, generator=g), torch.rand(2, 3, 17, 23, generator=g, requires_grad=True)
+    ours, ref = ssim_map(x, y), ssim(x, y, 3, max_val=1.0, padding="same")
+    torch.testing.assert_close(ours, ref, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(torch.autograd.grad(ours.sum(), y)[0], torch.autograd.grad(ref.sum(), y)[0],
+                               rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(ssim_map(x, x), torch.ones_like(x), rtol=0, atol=1e-5)

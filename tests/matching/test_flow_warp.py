@@ -126,3 +126,20 @@ def test_gradients_for_training_losses():
     diff = forward_backward_inconsistency(fwd, bwd)
     diff[torch.isfinite(diff)].sum().backward()
     assert torch.isfinite(fwd.grad).all() and torch.isfinite(bwd.grad).all()
+
+
+def test_flow_magnitude_values_and_gradient_at_zero() -> None:
+    """sqrt(u^2 + v^2) per pixel (3-4-5 triangles), the same values as torch's norm over the channels, and a finite
+    (zero) gradient where the flow is exactly zero, as the supervised EPE needs at pixels it gets right."""
+    from dfvo.matching.flow_warp import flow_magnitude
+
+    flow = torch.tensor([[[[3.0, 0.0]], [[4.0, 0.0]]]], requires_grad=True)  # (1,2,1,2): (3,4) and (0,0)
+    mag = flow_magnitude(flow)
+    assert mag.shape == (1, 1, 1, 2)
+    torch.testing.assert_close(mag[0, 0, 0, 0], torch.tensor(5.0))
+    assert float(mag[0, 0, 0, 1]) < 1e-9
+    mag.sum().backward()
+    torch.testing.assert_close(flow.grad[0, :, 0, 0], torch.tensor([0.6, 0.8]))
+    assert torch.equal(flow.grad[0, :, 0, 1], torch.zeros(2))
+    x = torch.randn(2, 2, 8, 9, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(flow_magnitude(x), x.norm(dim=1, keepdim=True))

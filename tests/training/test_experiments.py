@@ -59,12 +59,13 @@ def test_experiment_holds_only_its_differences(name: str) -> None:
 
 
 def test_flow_fast_is_the_recorded_recipe() -> None:
-    """flow_fast restates flow_v3 (model card): init flow.safetensors, 24 worlds of seeds 0-23 cycling drive, city,
-    straight, highway, 0.3-3 m/frame, skips 1-3, max flow 160 px, 96x320 at 640x192, sup 4500 + mix 1500, batch
-    4 + 2 KITTI pairs, clipping 10, lr 1e-4 / 2e-5 /10 for the last quarter of each phase."""
+    """flow_fast restates flow_v3 (model card): init the flow_stage2 run's weights, 24 worlds of seeds 0-23 cycling
+    drive, city, straight, highway, 0.3-3 m/frame, skips 1-3, max flow 160 px, 96x320 at 640x192, sup 4500 + mix
+    1500, batch 4 + 2 KITTI pairs, clipping 10, lr 1e-4 / 2e-5 /10 for the last quarter of each phase."""
     cfg = _compose("experiment=flow_fast")
     m, d = model_config(cfg), data_config(cfg)
-    assert m.init_from == "checkpoints/flow.safetensors" and m.variant == "small" and m.grad_clip_norm == 10
+    assert m.init_from == str(Path(cfg.runs_dir).expanduser() / "flow_stage2" / "weights.safetensors")
+    assert m.variant == "small" and m.grad_clip_norm == 10
     assert [(p.steps, p.lr, p.synthetic, p.kitti) for p in m.phases] == [(4500, 1e-4, True, False),
                                                                         (1500, 2e-5, True, True)]
     assert m.lr_drop_fraction == 0.75 and m.self_weight == 1.0
@@ -129,7 +130,7 @@ def test_train_py_experiment_smoke_cli(tmp_path: Path, kitti_raw_root: Path) -> 
     exit 0, `done:` printed, no Lightning line twice, no advert, no warning, and only last.ckpt kept."""
     tiny = [o for o in TINY_FLOW if not o.startswith("model.variant")]  # the shipped small network it starts from
     cmd = [sys.executable, "train.py", "experiment=flow_fast", "trainer=smoke", f"runs_dir={tmp_path}", "threads=1",
-           f"data.root={kitti_raw_root.parent}", *tiny]
+           f"data.root={kitti_raw_root.parent}", "model.init_from=checkpoints/flow.safetensors", *tiny]
     res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     lines = [line for line in (res.stdout + res.stderr).splitlines() if line.strip()]

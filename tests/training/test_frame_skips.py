@@ -97,7 +97,8 @@ def test_kitti_raw_snippets_with_frame_skips(kitti_raw_root: Path) -> None:
     from dfvo.data.kitti_raw import KittiRawSnippets
     root = kitti_raw_root.parent
     own = KittiRawSnippets(root, 64, 96, stereo=True, temporal=True)
-    ds = _datamodule("model=depth_stereo", "data=kitti_raw", f"data.root={root}", "data.frame_skips=[1,2]").train_set
+    ds = _datamodule("model=depth_stereo", "data=kitti_raw", f"data.root={root}", "data.frame_skips=[1,2]",
+                     "data.frame_cache_dir=null").train_set
     n = len(own)
     assert len(ds) == n + (n - 2)
     for i in (0, n - 1):
@@ -108,6 +109,7 @@ def test_kitti_raw_snippets_with_frame_skips(kitti_raw_root: Path) -> None:
     gap2 = ds[n]  # frames (0, 2, 4)
     assert int(gap2["frame_skip"]) == 2
     assert torch.equal(gap2["image_prev"], own[0]["image_prev"]) and torch.equal(gap2["image_next"], own[3]["image"])
-    flow = _datamodule("model=flow_self", "data=kitti_raw", f"data.root={root}", "data.frame_skips=[3]").train_set
+    flow = _datamodule("model=flow_self", "data=kitti_raw", f"data.root={root}", "data.frame_skips=[3]",
+                       "data.frame_cache_dir=null").train_set
     assert "image_right" not in flow[0] and int(flow[0]["frame_skip"]) == 3
     assert torch.equal(flow[0]["image_next"], own[5]["image"])

@@ -132,7 +132,7 @@ def test_cfg_job_prints_every_default() -> None:
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     for line in ("_target_: dfvo.training.depth_module.DepthPoseModule", "w_smooth: 0.001", "flip_prob: 0.5",
-                 "frame_skips:", "precision: 32-true", "channels_last: false", "validate_at_stop: true"):
+                 "frame_skips:", "precision: auto", "channels_last: false", "validate_at_stop: true"):
         assert line in res.stdout, line
 
 

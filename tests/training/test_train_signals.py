@@ -1,6 +1,7 @@
 """A training run stopped by SIGTERM (a cluster's time limit) or SIGINT (Ctrl-C) mid-epoch writes last.ckpt for the
 step it finished, says so in one line and exits 143 / 130; resuming from that checkpoint ends with the weights of
-an uninterrupted run (issue 28)."""
+an uninterrupted run (issue 28). A run killed by SIGKILL (or a power loss) mid-epoch keeps its last periodic
+checkpoint, and ``resume=auto`` continues it from there to the same weights (issue 37)."""
 
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ def test_signal_mid_epoch_saves_and_resumes_exactly(tmp_path: Path, sig: signal.
     assert proc.stdout is not None
     for line in proc.stdout:  # wait until training is under way (step 5 logged)
         lines.append(line)
-        if " step 5 " in line or time.monotonic() > deadline:
+        if " step 5/" in line or time.monotonic() > deadline:
             break
     proc.send_signal(sig)
     rest, _ = proc.communicate(timeout=300)
@@ -96,3 +97,34 @@ def test_signal_before_training_stops_at_once(tmp_path: Path) -> None:
     assert proc.returncode == 143, out[-2000:]
     assert "stopped by SIGTERM before training started; nothing to save" in out
     assert not (tmp_path / "early" / "checkpoints" / "last.ckpt").exists()
+
+
+def test_sigkill_mid_epoch_then_resume_auto(tmp_path: Path, uninterrupted: dict[str, torch.Tensor]) -> None:
+    """SIGKILL after step 12 of 40, checkpoints every 5 steps: last.ckpt holds step 10 (whole: written to a temporary
+    file and renamed), previous.ckpt step 5; `resume=auto` says it resumes from step 10 and ends with the
+    uninterrupted run's weights, bitwise (so the optimiser state and data position were restored too)."""
+    cmd = _cmd(tmp_path, "killed", "resume=auto", "trainer.checkpoint_every_n_steps=5")
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    deadline = time.monotonic() + 300
+    assert proc.stdout is not None
+    output = []
+    for line in proc.stdout:
+        output.append(line)
+        if " step 12/" in line or time.monotonic() > deadline:
+            break
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=60)
+    assert proc.returncode == -signal.SIGKILL, "".join(output)[-2000:]
+    folder = tmp_path / "killed" / "checkpoints"
+    last = torch.load(folder / "last.ckpt", map_location="cpu", weights_only=False)
+    assert last["global_step"] == 10 and not (tmp_path / "killed" / "finished.json").exists()
+    assert torch.load(folder / "previous.ckpt", map_location="cpu", weights_only=False)["global_step"] == 5
+
+    resumed = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env=ENV, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    log = resumed.stdout + resumed.stderr
+    assert f"resume=auto: resuming {tmp_path / 'killed'} from {folder / 'last.ckpt'} (step 10," in log, log[-3000:]
+    assert "training from step 10 of 40" in log
+    a, b = _weights(folder / "last.ckpt"), uninterrupted
+    assert set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a)
+    assert (tmp_path / "killed" / "finished.json").is_file()

@@ -1,0 +1,135 @@
+"""Training speed per recipe: milliseconds per real ``train.py`` step, and the speed-up of the default arithmetic
+against float32 eager, in one process; prints JSON.
+
+Each (recipe, precision) runs :func:`dfvo.training.runner.run_training` — the same code as ``python train.py
+experiment=RECIPE`` — for ``--warmup + --steps`` steps (no validation, no checkpoint, no TensorBoard: what a step of
+a long run costs between them) and times every step from the end of the previous one (data, forward, backward,
+optimiser, Lightning's own work). ``ms_per_step`` is the median of the timed steps after the warm-up, ``steps_per_hour``
+its inverse. The precisions alternate in ``--rounds`` rounds (A B, B A, ...) so both see the same machine load; the
+``speedup`` of each precision is the median over rounds of (ms of ``32-true``) / (its ms).
+
+Recipes (``--recipes``): an experiment name, or ``NAME:PHASE`` for one phase of a step-scheduled flow recipe
+(``flow_allspeed:sup``, ``flow_allspeed:mix``). Initial weights are left out (``model.init_from=null``: the speed does
+not depend on them). KITTI raw: ``--kitti-raw`` or ``$DFVO_KITTI_RAW_ROOT``, else ``../shared/data/kitti_raw``.
+Render caches: ``--runs-dir`` (default ``$DFVO_RUNS_DIR`` or ``~/dfvo-runs``), whose ``render_cache`` a campaign
+shares.
+
+    OMP_NUM_THREADS=1 python benchmarks/train_step.py --threads 1
+    OMP_NUM_THREADS=1 python benchmarks/train_step.py --recipes flow_allspeed:sup --precisions 32-true auto
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from hydra import compose, initialize_config_module
+
+from dfvo.training.precision import cpu_has_bf16, resolve_precision
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_RECIPES = ["depth_stage2", "flow_allspeed:sup", "flow_allspeed:mix"]
+
+
+class StepTimer(L.Callback):
+    """Wall seconds of every training step, from the end of the previous one (the first from the start of training)."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self._last: float | None = None
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._last = time.perf_counter()
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        now = time.perf_counter()
+        if self._last is not None:
+            self.times.append(now - self._last)
+        self._last = now
+
+
+def recipe_overrides(recipe: str, steps: int) -> list[str]:
+    """``train.py`` overrides of ``recipe`` (``NAME`` or ``NAME:PHASE``) for a ``steps``-step timing run."""
+    name, _, phase = recipe.partition(":")
+    out = [f"experiment={name}", "model.init_from=null", f"trainer.max_steps={steps}", "trainer.logger=false",
+           "trainer.export_weights=false", "trainer.keep_best=false", "trainer.enable_progress_bar=false",
+           "trainer.print_every_n_steps=0", "trainer.validate_at_stop=false", "trainer.limit_val_batches=0",
+           "trainer.val_check_interval=null", "trainer.checkpoint_every_n_steps=null", "model.log_images_every=0"]
+    if phase == "sup":
+        out.append(f"model.phases=[{{name:sup,steps:{steps},lr:5.0e-5}}]")
+    elif phase == "mix":
+        out.append(f"model.phases=[{{name:mix,steps:{steps},lr:2.0e-5,kitti:true}}]")
+    elif phase:
+        raise SystemExit(f"--recipes {recipe}: phase {phase!r}; expected sup or mix")
+    return out
+
+
+def time_recipe(recipe: str, precision: str, steps: int, warmup: int, threads: int, runs_dir: Path) -> list[float]:
+    """Per-step seconds of ``steps`` timed steps after ``warmup`` steps of ``recipe`` at ``precision``."""
+    from dfvo.training.runner import run_training
+
+    timer = StepTimer()
+    with tempfile.TemporaryDirectory() as tmp:
+        overrides = [*recipe_overrides(recipe, warmup + steps), f"trainer.precision={precision}",
+                     f"threads={threads}", f"runs_dir={tmp}"]
+        if recipe.startswith("flow"):
+            overrides.append(f"data.cache_dir={runs_dir / 'render_cache'}")
+        with initialize_config_module("dfvo.conf.train", version_base="1.3"):
+            cfg = compose("train", overrides=overrides)
+        run_training(cfg, extra_callbacks=[timer])
+    return timer.times[warmup:]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--recipes", nargs="+", default=DEFAULT_RECIPES)
+    p.add_argument("--precisions", nargs="+", default=["32-true", "auto"])
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--runs-dir", type=Path,
+                   default=Path(os.environ.get("DFVO_RUNS_DIR", "~/dfvo-runs")).expanduser())
+    p.add_argument("--kitti-raw", type=Path, default=None)
+    a = p.parse_args()
+    root = a.kitti_raw or Path(os.environ.get("DFVO_KITTI_RAW_ROOT", REPO.parent / "shared" / "data" / "kitti_raw"))
+    os.environ["DFVO_KITTI_RAW_ROOT"] = str(root)
+    torch.set_num_threads(a.threads)
+    results: dict[str, Any] = {}
+    for recipe in a.recipes:
+        runs: dict[str, list[float]] = {prec: [] for prec in a.precisions}
+        for r in range(a.rounds):
+            order = a.precisions if r % 2 == 0 else list(reversed(a.precisions))
+            for prec in order:
+                times = time_recipe(recipe, prec, a.steps, a.warmup, a.threads, a.runs_dir)
+                runs[prec].append(statistics.median(times) * 1e3)
+        entry: dict[str, Any] = {}
+        for prec, ms in runs.items():
+            resolved = resolve_precision(prec, "cpu")[0]
+            entry[prec] = {"resolved": resolved, "ms_per_step": round(min(ms), 1),
+                           "ms_per_step_rounds": [round(m, 1) for m in ms],
+                           "steps_per_hour": round(3.6e6 / min(ms))}
+            if "32-true" in runs and prec != "32-true":
+                ratios = [f / m for f, m in zip(runs["32-true"], ms)]
+                entry[prec]["speedup_vs_fp32"] = round(statistics.median(ratios), 3)
+        results[recipe] = entry
+        print(json.dumps({recipe: entry}), flush=True)
+    print(json.dumps({
+        "machine": platform.processor() or platform.machine(), "cpu_bf16": cpu_has_bf16(), "threads": a.threads,
+        "torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "steps_timed": a.steps, "warmup": a.warmup, "rounds": a.rounds, "load_avg_1min": os.getloadavg()[0],
+        "recipes": results}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,47 @@
+"""scripts/campaign.sh: the queue runs each run with resume=auto into the runs folder, skips finished runs, stops at
+a failed one, and reports progress (issue 37)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SCRIPT = REPO / "scripts" / "campaign.sh"
+TINY = ("model=flow_mix data=flow_mix model.variant=tiny data.height=32 data.width=96 data.seeds=[0] "
+        "data.num_frames=5 data.frame_skips=[1] data.max_flow=null data.val_seeds=[] data.batch_size=2 "
+        "model.log_images_every=0 trainer.logger=false trainer.precision=32-true "
+        "model.phases=[{name:sup,steps:30,lr:1.0e-4}]")
+
+pytestmark = pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
+
+
+def _campaign(runs: Path, queue: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "DFVO_RUNS_DIR": str(runs), "CAMPAIGN_QUEUE": str(queue), "CAMPAIGN_CODE": str(REPO),
+           "OMP_NUM_THREADS": "1"}
+    return subprocess.run(["bash", str(SCRIPT), *args], capture_output=True, text=True, env=env, timeout=600)
+
+
+def test_queue_runs_resumes_skips_and_stops_at_a_failure(tmp_path: Path) -> None:
+    runs, queue = tmp_path / "runs", tmp_path / "queue"
+    queue.write_text(f"# a comment\n\nfirst  {TINY}\nbroken {TINY} model.no_such_key=1\nthird  {TINY}\n")
+    res = _campaign(runs, queue, "run")
+    assert res.returncode == 0, res.stderr
+    log = (runs / "campaign.log").read_text()
+    assert (runs / "first" / "finished.json").is_file()
+    assert "first: finished" in log and "step 25/30" in log and "steps/h ETA" in log
+    assert "resume=auto: " in log  # train.py ran with resume=auto
+    assert "broken: failed" in log and "the queue stops here" in log
+    assert not (runs / "third").exists() and not (runs / "campaign.pid").exists()
+
+    queue.write_text(f"first  {TINY}\nthird  {TINY} trainer.max_steps=10\n")
+    res = _campaign(runs, queue, "run")
+    log = (runs / "campaign.log").read_text()
+    assert "first: finished ({" in log and "; next" in log  # skipped: finished.json
+    assert (runs / "third" / "finished.json").is_file()
+    status = _campaign(runs, queue, "status").stdout
+    assert "campaign: not running" in status and "first: finished" in status and "third: finished" in status
