@@ -5,8 +5,10 @@ Each (recipe, precision) runs :func:`dfvo.training.runner.run_training` — the 
 experiment=RECIPE`` — for ``--warmup + --steps`` steps (no validation, no checkpoint, no TensorBoard: what a step of
 a long run costs between them) and times every step from the end of the previous one (data, forward, backward,
 optimiser, Lightning's own work). ``ms_per_step`` is the median of the timed steps after the warm-up, ``steps_per_hour``
-its inverse. The precisions alternate in ``--rounds`` rounds (A B, B A, ...) so both see the same machine load; the
-``speedup`` of each precision is the median over rounds of (ms of ``32-true``) / (its ms).
+its inverse. The variants alternate in ``--rounds`` rounds (A B, B A, ...) so all see the same machine load; the
+``speedup_vs_fp32`` of each is the median over rounds of (ms of ``32-true``) / (its ms). ``--old-code DIR`` adds
+another checkout's code at its own defaults (``speedup_vs_old_code``: the before/after of a change), timed the same
+way in a subprocess that imports ``dfvo`` from ``DIR``.
 
 Recipes (``--recipes``): an experiment name, or ``NAME:PHASE`` for one phase of a step-scheduled flow recipe
 (``flow_allspeed:sup``, ``flow_allspeed:mix``). Initial weights are left out (``model.init_from=null``: the speed does
@@ -25,6 +27,8 @@ import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -33,8 +37,6 @@ from typing import Any
 import lightning as L
 import torch
 from hydra import compose, initialize_config_module
-
-from dfvo.training.precision import cpu_has_bf16, resolve_precision
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RECIPES = ["depth_stage2", "flow_allspeed:sup", "flow_allspeed:mix"]
@@ -75,25 +77,50 @@ def recipe_overrides(recipe: str, steps: int) -> list[str]:
 
 
 def time_recipe(recipe: str, precision: str, steps: int, warmup: int, threads: int, runs_dir: Path) -> list[float]:
-    """Per-step seconds of ``steps`` timed steps after ``warmup`` steps of ``recipe`` at ``precision``."""
+    """Per-step seconds of ``steps`` timed steps after ``warmup`` steps of ``recipe`` at ``precision``, in this
+    process, with the ``dfvo`` that ``import dfvo`` finds (the step timer joins every Lightning Trainer built)."""
     from dfvo.training.runner import run_training
 
     timer = StepTimer()
+    init = L.Trainer.__init__
+
+    def with_timer(self: L.Trainer, *args: Any, **kwargs: Any) -> None:
+        kwargs["callbacks"] = [*(kwargs.get("callbacks") or []), timer]
+        init(self, *args, **kwargs)
+
     with tempfile.TemporaryDirectory() as tmp:
-        overrides = [*recipe_overrides(recipe, warmup + steps), f"trainer.precision={precision}",
-                     f"threads={threads}", f"runs_dir={tmp}"]
+        overrides = [*recipe_overrides(recipe, warmup + steps), f"threads={threads}", f"runs_dir={tmp}"]
+        if precision != "code default":
+            overrides.append(f"trainer.precision={precision}")
         if recipe.startswith("flow"):
             overrides.append(f"data.cache_dir={runs_dir / 'render_cache'}")
         with initialize_config_module("dfvo.conf.train", version_base="1.3"):
             cfg = compose("train", overrides=overrides)
-        run_training(cfg, extra_callbacks=[timer])
+        L.Trainer.__init__ = with_timer  # type: ignore[method-assign]
+        try:
+            run_training(cfg)
+        finally:
+            L.Trainer.__init__ = init  # type: ignore[method-assign]
     return timer.times[warmup:]
+
+
+def time_other_code(code: Path, recipe: str, steps: int, warmup: int, threads: int, runs_dir: Path) -> list[float]:
+    """:func:`time_recipe` of another checkout's ``dfvo`` (its own default precision), in a subprocess."""
+    cmd = [sys.executable, __file__, "--worker", recipe, "--steps", str(steps), "--warmup", str(warmup),
+           "--threads", str(threads), "--runs-dir", str(runs_dir)]
+    env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": str(threads)}
+    res = subprocess.run(cmd, cwd=code, capture_output=True, text=True, env=env)
+    if res.returncode:
+        raise RuntimeError(f"{code}: {recipe}: exit {res.returncode}\n{res.stderr[-2000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--recipes", nargs="+", default=DEFAULT_RECIPES)
     p.add_argument("--precisions", nargs="+", default=["32-true", "auto"])
+    p.add_argument("--old-code", type=Path, default=None,
+                   help="also time this checkout (e.g. `git worktree add /tmp/old COMMIT`) at its own defaults")
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--warmup", type=int, default=5)
     p.add_argument("--rounds", type=int, default=2)
@@ -101,34 +128,43 @@ def main() -> None:
     p.add_argument("--runs-dir", type=Path,
                    default=Path(os.environ.get("DFVO_RUNS_DIR", "~/dfvo-runs")).expanduser())
     p.add_argument("--kitti-raw", type=Path, default=None)
+    p.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     a = p.parse_args()
     root = a.kitti_raw or Path(os.environ.get("DFVO_KITTI_RAW_ROOT", REPO.parent / "shared" / "data" / "kitti_raw"))
     os.environ["DFVO_KITTI_RAW_ROOT"] = str(root)
     torch.set_num_threads(a.threads)
+    if a.worker:  # one timing of the dfvo on PYTHONPATH, for --old-code
+        print(json.dumps(time_recipe(a.worker, "code default", a.steps, a.warmup, a.threads, a.runs_dir)))
+        return
+    from dfvo.training.precision import cpu_has_bf16, resolve_precision  # not in an --old-code worker's dfvo
+
+    variants = list(a.precisions) + (["old code"] if a.old_code else [])
     results: dict[str, Any] = {}
     for recipe in a.recipes:
-        runs: dict[str, list[float]] = {prec: [] for prec in a.precisions}
+        runs: dict[str, list[float]] = {v: [] for v in variants}
         for r in range(a.rounds):
-            order = a.precisions if r % 2 == 0 else list(reversed(a.precisions))
-            for prec in order:
-                times = time_recipe(recipe, prec, a.steps, a.warmup, a.threads, a.runs_dir)
-                runs[prec].append(statistics.median(times) * 1e3)
+            for v in (variants if r % 2 == 0 else list(reversed(variants))):
+                times = (time_other_code(a.old_code, recipe, a.steps, a.warmup, a.threads, a.runs_dir)
+                         if v == "old code" else time_recipe(recipe, v, a.steps, a.warmup, a.threads, a.runs_dir))
+                runs[v].append(statistics.median(times) * 1e3)
         entry: dict[str, Any] = {}
-        for prec, ms in runs.items():
-            resolved = resolve_precision(prec, "cpu")[0]
-            entry[prec] = {"resolved": resolved, "ms_per_step": round(min(ms), 1),
-                           "ms_per_step_rounds": [round(m, 1) for m in ms],
-                           "steps_per_hour": round(3.6e6 / min(ms))}
-            if "32-true" in runs and prec != "32-true":
-                ratios = [f / m for f, m in zip(runs["32-true"], ms)]
-                entry[prec]["speedup_vs_fp32"] = round(statistics.median(ratios), 3)
+        for v, ms in runs.items():
+            entry[v] = {"ms_per_step": round(min(ms), 1), "ms_per_step_rounds": [round(m, 1) for m in ms],
+                        "steps_per_hour": round(3.6e6 / min(ms))}
+            if v != "old code":
+                entry[v]["resolved"] = resolve_precision(v, "cpu")[0]
+            for base in ("32-true", "old code"):
+                if base in runs and v != base:
+                    ratios = [b / m for b, m in zip(runs[base], ms)]
+                    entry[v][f"speedup_vs_{base.replace(' ', '_').replace('32-true', 'fp32')}"] = round(
+                        statistics.median(ratios), 3)
         results[recipe] = entry
         print(json.dumps({recipe: entry}), flush=True)
     print(json.dumps({
         "machine": platform.processor() or platform.machine(), "cpu_bf16": cpu_has_bf16(), "threads": a.threads,
         "torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
-        "steps_timed": a.steps, "warmup": a.warmup, "rounds": a.rounds, "load_avg_1min": os.getloadavg()[0],
-        "recipes": results}, indent=1))
+        "old_code": str(a.old_code) if a.old_code else None, "steps_timed": a.steps, "warmup": a.warmup,
+        "rounds": a.rounds, "load_avg_1min": os.getloadavg()[0], "recipes": results}, indent=1))
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@
 #
 # The queue runs the code of the commit checked out when it starts (HEAD, exported to RUNS/code/SHA), so editing
 # the work tree while it trains changes nothing under it; commit, then stop and start it to move it to new code.
+# Run it with the project's Python (an activated venv, or PYTHON=/path/to/venv/bin/python).
 # Environment: DFVO_RUNS_DIR (the runs folder, default ~/dfvo-runs), DFVO_KITTI_RAW_ROOT (default
 # ../shared/data/kitti_raw beside the repository), CAMPAIGN_QUEUE (default scripts/campaign.queue),
 # CAMPAIGN_THREADS (torch threads, default 1), PYTHON (default python), CAMPAIGN_CODE (run this folder's code
@@ -60,6 +61,9 @@ code_snapshot() {  # RUNS/code/SHA: the committed tree of HEAD (not the work tre
   if [ ! -f "$dir/train.py" ]; then
     rm -rf "$dir.tmp" && mkdir -p "$dir.tmp" && git -C "$REPO" archive HEAD | tar -x -C "$dir.tmp" && mv "$dir.tmp" "$dir"
   fi
+  touch "$dir"
+  # keep the three newest exports (~35 MB each: the shipped weights are part of the tree)
+  ls -1dt "$CODE_ROOT"/*/ 2>/dev/null | tail -n +4 | xargs -r rm -rf
   echo "$dir"
 }
 

@@ -51,15 +51,17 @@ BANDS: dict[str, dict[str, float]] = {
 }
 
 
-def _sequence(kind: str, root: str, seq: str):
+def _sequence(kind: str, root: str, seq: str, depth_checkpoint: str | None = None):
+    extra = [f"depth.checkpoint={depth_checkpoint}"] if depth_checkpoint else []
     with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "infer"), version_base="1.3"):
-        cfg = typed(compose("infer", overrides=[f"data={kind}", f"data.root={root}", f"seq={seq}"]))
+        cfg = typed(compose("infer", overrides=[f"data={kind}", f"data.root={root}", f"seq={seq}", *extra]))
     return cfg, build_sequence(cfg.data, cfg.seq, cfg.img_res)
 
 
-def network_heights(kind: str, root: str, seq: str, batch: int = 8) -> dict:
-    """Median network road height (m) and spread over the frames of one sequence, per band."""
-    cfg, frames = _sequence(kind, root, seq)
+def network_heights(kind: str, root: str, seq: str, batch: int = 8, depth_checkpoint: str | None = None) -> dict:
+    """Median network road height (m) and spread over the frames of one sequence, per band (``depth_checkpoint``:
+    another depth network than the shipped one)."""
+    cfg, frames = _sequence(kind, root, seq, depth_checkpoint)
     depth_src = build_depth_source(cfg.depth, None, "cpu")
     K = frames.K.to(torch.float32)[None]
     base = TrackerConfig()
@@ -107,14 +109,17 @@ def main() -> None:
     p.add_argument("--drives", default="", help="KITTI raw drives (comma-separated)")
     p.add_argument("--run", action="append", default=[],
                    help="an infer.py output folder of a KITTI odometry sequence (its frames.csv; repeatable)")
+    p.add_argument("--depth-checkpoint", default=None, help="a depth network other than the shipped one")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     out: dict = {"true_camera_height_m": KITTI_CAMERA_HEIGHT, "network": {}, "photometric": {}}
     for seq in filter(None, args.seqs.split(",")):
-        out["network"][f"kitti_odom {seq}"] = network_heights("kitti_odom", args.kitti_odom, seq)
+        out["network"][f"kitti_odom {seq}"] = network_heights("kitti_odom", args.kitti_odom, seq,
+                                                              depth_checkpoint=args.depth_checkpoint)
     for drive in filter(None, args.drives.split(",")):
-        out["network"][f"kitti_raw {drive}"] = network_heights("kitti_raw", args.kitti_raw, drive)
+        out["network"][f"kitti_raw {drive}"] = network_heights("kitti_raw", args.kitti_raw, drive,
+                                                               depth_checkpoint=args.depth_checkpoint)
     for run in args.run:
         summary = json.loads((Path(run) / "summary.json").read_text())
         seq = str(summary.get("sequence", Path(run).name))

@@ -149,6 +149,11 @@ def closest_key(exc: BaseException) -> str | None:
         match = difflib.get_close_matches(str(key), valid, n=1, cutoff=0.6)
         if match:
             return f"the closest valid key is '{prefix}{match[0]}'"
+        kind = parent.get("kind", None) if hasattr(parent, "get") else None
+        if prefix == "data." and kind == "synthetic":  # a dataset's setting given without choosing the dataset
+            return (f"data={kind} (the default, the built-in world) has no data.{key}: choose the dataset first, "
+                    f"e.g. data=kitti_odom data.{key}=... (kinds: kitti_odom, kitti_raw, folder, video, euroc, tum, "
+                    "stream)")
         listed = ", ".join(f"{prefix}{k}" for k in valid[:12]) + (", ..." if len(valid) > 12 else "")
         return f"no valid key is close; valid keys there: {listed}"
     return None

@@ -28,13 +28,14 @@ __all__ = ["CACHE_FORMAT", "cache_key", "DecodedFrames"]
 CACHE_FORMAT = 1
 
 
-def cache_key(paths: Sequence[Path], size: tuple[int, int]) -> str:
-    """16 hex digits identifying the frames of ``paths`` decoded at ``size`` (format, size, names, sizes, times)."""
+def cache_key(paths: Sequence[Path], size: tuple[int, int], channels: int = 3) -> str:
+    """16 hex digits identifying the frames of ``paths`` decoded at ``size`` (format, size, channels, names, sizes,
+    times)."""
     files = []
     for p in paths:
         st = Path(p).stat()
         files.append([Path(p).name, st.st_size, st.st_mtime_ns])
-    text = json.dumps([CACHE_FORMAT, list(size), files])
+    text = json.dumps([CACHE_FORMAT, list(size), files] + ([channels] if channels != 3 else []))
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
@@ -43,20 +44,24 @@ class DecodedFrames:
 
     Args:
         paths: the image files, in order. size: (H, W) every decoded frame has.
-        load: path -> (3,H,W) float tensor in [0,1] (the decoder the frames would otherwise be read with).
+        load: path -> (C,H,W) float tensor (the decoder the frames would otherwise be read with: images in [0,1],
+            or maps derived from the files, e.g. stereo depth hints in metres).
         cache_dir: the cache folder (created when missing). label: the file name's prefix (e.g. the drive and
-            camera folder).
+            camera folder, and what the maps are).
+        channels: C. key_paths: the files the maps depend on (default ``paths``; e.g. both images of stereo pairs).
 
     Raises:
         DatasetError: a cache file that does not hold the frames its name promises.
     """
 
     def __init__(self, paths: Sequence[Path], size: tuple[int, int], load: Callable[[Path], torch.Tensor],
-                 cache_dir: str | Path, label: str) -> None:
+                 cache_dir: str | Path, label: str, channels: int = 3,
+                 key_paths: Sequence[Path] | None = None) -> None:
         self.size = (int(size[0]), int(size[1]))
-        shape = (len(paths), 3, *self.size)
+        shape = (len(paths), channels, *self.size)
         folder = Path(cache_dir)
-        self.path = folder / f"{label}_{self.size[0]}x{self.size[1]}_{cache_key(paths, self.size)}.npy"
+        key = cache_key(paths if key_paths is None else key_paths, self.size, channels)
+        self.path = folder / f"{label}_{self.size[0]}x{self.size[1]}_{key}.npy"
         if not self.path.is_file():
             folder.mkdir(parents=True, exist_ok=True)
             tmp = self.path.with_name(f"{self.path.name}.{os.getpid()}.tmp")
@@ -79,5 +84,5 @@ class DecodedFrames:
         return int(self.frames.shape[0])
 
     def __getitem__(self, i: int) -> torch.Tensor:
-        """Frame ``i`` as a (3,H,W) float32 tensor (a copy)."""
+        """Frame ``i`` as a (C,H,W) float32 tensor (a copy)."""
         return torch.from_numpy(np.asarray(self.frames[i], dtype=np.float32))

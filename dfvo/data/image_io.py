@@ -54,13 +54,21 @@ def _natural_key(path: Path) -> list[int | str]:
 
 def list_images(folder: str | Path, what: str = "image folder") -> list[Path]:
     """All PNG/JPEG files directly inside ``folder``, in natural order; hidden files (``._000001.png``) are skipped
-    and reported in one warning.
+    and reported in one warning. The set is checked before it is trusted: one file per frame name (``000001.png``
+    beside ``000001.jpg`` is one frame exported twice) and every link pointing at a file.
 
     Raises:
         DatasetNotFoundError: ``folder`` does not exist.
-        DatasetError: ``folder`` holds no PNG/JPEG file.
+        DatasetError: ``folder`` holds no PNG/JPEG file, a frame name twice (two extensions), or a broken link.
     """
     folder = require_dir(folder, what)
+    candidates = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
+    broken = sorted((p.name for p in candidates if p.is_symlink() and not p.exists()), key=lambda n: _natural_key(
+        Path(n)))
+    if broken:
+        raise DatasetError(f"{what}: {folder} holds {len(broken)} broken link{'s' if len(broken) > 1 else ''} "
+                           f"({', '.join(broken[:3])}{', ...' if len(broken) > 3 else ''}): every frame file must be "
+                           "readable (a skipped one would shift every later pose to the wrong frame); fix or remove")
     images = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
     files = [p for p in images if not p.name.startswith(".")]
     hidden = sorted((p.name for p in images if p.name.startswith(".")), key=lambda n: _natural_key(Path(n)))
@@ -71,6 +79,15 @@ def list_images(folder: str | Path, what: str = "image folder") -> list[Path]:
     if not files:
         raise DatasetError(f"{what}: folder {folder} contains no images (expected files ending in "
                            f"{', '.join(IMAGE_SUFFIXES)})")
+    stems: dict[str, list[str]] = {}
+    for p in files:
+        stems.setdefault(p.stem, []).append(p.name)
+    twice = sorted((names for names in stems.values() if len(names) > 1), key=lambda n: _natural_key(Path(n[0])))
+    if twice:
+        example = ", ".join(sorted(twice[0]))
+        raise DatasetError(f"{what}: {folder} holds {len(twice)} frame name{'s' if len(twice) > 1 else ''} with more "
+                           f"than one file (e.g. {example}): one file per frame expected; keep one naming family "
+                           "(one extension)")
     return sorted(files, key=_natural_key)
 
 
@@ -168,7 +185,11 @@ def array_to_image(arr: np.ndarray, *, size: tuple[int, int] | None = None) -> t
     elif a.dtype == np.uint16:
         a = a * np.float32(1.0 / 65535.0)
     elif np.issubdtype(a.dtype, np.floating):
-        a = a.astype(np.float32, copy=False)
+        a = np.ascontiguousarray(a, dtype=np.float32)  # views such as frame[..., ::-1] have negative strides
+        peak = float(np.nanmax(a)) if a.size else 0.0
+        if peak > 1.5:
+            raise ValueError(f"float image array with values up to {peak:g}; expected [0,1] (divide by 255, or pass "
+                             "the uint8 array itself)")
     else:
         raise ValueError(f"image array of dtype {a.dtype}; expected uint8, uint16 or float in [0,1]")
     return _to_chw(a, size)

@@ -20,6 +20,8 @@ Convention:
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +39,10 @@ from dfvo.data.calibration import (
 )
 from dfvo.data.frame_cache import DecodedFrames
 from dfvo.data.image_io import DatasetError, image_size, list_images, read_image, require_dir, require_file
+from dfvo.data.stereo_hints import hint_depth
 from dfvo.data.transforms import check_working_size, resize_with_intrinsics
+
+log = logging.getLogger("dfvo.data")
 
 EARTH_RADIUS_M = 6378137.0
 
@@ -119,22 +124,44 @@ def oxts_camera_poses(drive_dir: str | Path, camera: int = 2) -> np.ndarray | No
     return T_cam_imu @ T_imu0_imu @ np.linalg.inv(T_cam_imu)
 
 
-def _find_drives(root: Path, drives: list[str] | None) -> list[Path]:
-    """Drive folders ``DATE/DATE_drive_XXXX_sync`` under ``root`` (a dataset root or one DATE folder)."""
+
+
+def _find_drives(root: Path, drives: list[str] | None, held_out: Sequence[str] = ()) -> list[Path]:
+    """Drive folders ``DATE/DATE_drive_XXXX_sync`` under ``root`` (a dataset root or one DATE folder): ``drives``,
+    or every drive but those named in ``held_out`` (left out with one log line; naming one in ``drives`` trains on
+    it, with a warning)."""
     date_dirs = [root] if (root / "calib_cam_to_cam.txt").is_file() else sorted(p for p in root.iterdir() if p.is_dir())
     available = {d.name: d for date in date_dirs for d in sorted(date.glob("*_drive_*_sync")) if d.is_dir()}
+    held = {_sync_name(h) for h in held_out}
     if drives is None:
         if not available:
             raise DatasetError(f"KITTI raw root {root} contains no DATE/DATE_drive_XXXX_sync folders")
-        return list(available.values())
-    return [_drive_folder(str(name), root, available) for name in drives]
+        left_out = sorted(set(available) & held)
+        if left_out:
+            log.info("KITTI raw under %s: %d held-out test drive(s) left out of training (data.held_out_drives): %s",
+                     root, len(left_out), ", ".join(left_out))
+        kept = [d for name, d in available.items() if name not in held]
+        if not kept:
+            raise DatasetError(f"KITTI raw root {root} holds only held-out test drives ({', '.join(left_out)}); name "
+                               "the drives to train on with data.drives=[...] or change data.held_out_drives")
+        return kept
+    folders = [_drive_folder(str(name), root, available) for name in drives]
+    for folder in folders:
+        if folder.name in held:
+            log.warning("KITTI raw drive %s is a held-out test drive (data.held_out_drives): training on it, so its "
+                        "test metrics are no longer held out", folder.name)
+    return folders
+
+
+def _sync_name(name: str) -> str:
+    key = Path(str(name)).name
+    return key if key.endswith("_sync") else f"{key}_sync"
 
 
 def _drive_folder(name: str, root: Path, available: dict[str, Path]) -> Path:
     """The folder of drive ``name``: its full name (``2011_09_26_drive_0001`` with or without ``_sync``), or its
     number alone (``0001`` or ``1``) when exactly one date under ``root`` has a drive of that number."""
-    key = Path(name).name
-    key = key if key.endswith("_sync") else f"{key}_sync"
+    key = _sync_name(name)
     if key in available:
         return available[key]
     number = key.removesuffix("_sync")
@@ -166,6 +193,7 @@ class _Drive:
         self.native_size = image_size(self.left[0])
         K = torch.as_tensor(checked_intrinsics(cam_file, "P_rect_02", self.native_size), dtype=torch.float32)
         self.baseline = stereo_baseline(proj[2], proj[3])  # after the check: it divides by fx
+        self.fx_native = float(K[0, 0])
         self.size = size if size is not None else self.native_size
         _, self.K = resize_with_intrinsics(torch.zeros(1, *self.native_size), K, *self.size)
         poses = oxts_camera_poses(drive_dir, 2)
@@ -174,6 +202,7 @@ class _Drive:
                                f"{len(self.left)} images; expected one packet per image")
         self.poses = poses
         self.cached: dict[str, DecodedFrames] | None = None
+        self.hints: DecodedFrames | None = None
 
     def load(self, path: Path) -> torch.Tensor:
         return read_image(path, size=self.size, expected_size=self.native_size)
@@ -185,6 +214,17 @@ class _Drive:
         self.cached = {"left": DecodedFrames(self.left, self.size, self.load, cache_dir, f"{name}_image_02")}
         if self.right is not None:
             self.cached["right"] = DecodedFrames(self.right, self.size, self.load, cache_dir, f"{name}_image_03")
+
+    def use_hints(self, cache_dir: str | Path) -> None:
+        """Stereo depth hints of the left frames (:mod:`dfvo.data.stereo_hints`), computed once into a memory-mapped
+        cache in ``cache_dir``."""
+        if self.right is None:
+            raise DatasetError(f"{self.dir}: depth hints need the right camera (image_03/data)")
+        partner = dict(zip(self.left, self.right))
+        self.hints = DecodedFrames(self.left, self.size, lambda p: hint_depth(p, partner[p], self.fx_native,
+                                                                              self.baseline, self.size),
+                                   cache_dir, f"{self.dir.name}_sgbm_hints", channels=1,
+                                   key_paths=[*self.left, *self.right])
 
     def frame(self, camera: str, i: int) -> torch.Tensor:
         """Frame ``i`` of ``camera`` (``left``: image_02, ``right``: image_03), (3,H,W) float32 in [0,1]."""
@@ -206,6 +246,9 @@ class KittiRawSnippets(Dataset):
         temporal: add ``image_prev``/``image_next`` (targets are then frames 1..N-2 of each drive).
         cache_dir: read the decoded frames from memory-mapped caches there (written on first use:
             :mod:`dfvo.data.frame_cache`); None: decode every frame when it is read.
+        held_out: drive names left out when ``drives`` is None (training: :data:`dfvo.data.held_out.HELD_OUT_DRIVES`).
+        hints: add ``depth_hint`` (1,H,W), the stereo matcher's depth of the target frame in metres (0: none;
+            :mod:`dfvo.data.stereo_hints`), computed once into ``cache_dir`` (which it needs).
 
     Raises:
         DatasetNotFoundError: missing root, image folder or calibration file.
@@ -214,16 +257,23 @@ class KittiRawSnippets(Dataset):
     """
 
     def __init__(self, root: str | Path, height: int | None, width: int | None, drives: list[str] | None = None,
-                 stereo: bool = True, temporal: bool = True, cache_dir: str | Path | None = None) -> None:
+                 stereo: bool = True, temporal: bool = True, cache_dir: str | Path | None = None,
+                 held_out: Sequence[str] = (), hints: bool = False) -> None:
         if not (stereo or temporal):
             raise ValueError("KittiRawSnippets: at least one of stereo / temporal must be True")
         self.root = require_dir(root, "KITTI raw root")
         size = check_working_size(height, width, f"KittiRawSnippets({self.root})")
         self.stereo, self.temporal = stereo, temporal
-        self.drives = [_Drive(d, stereo, size) for d in _find_drives(self.root, drives)]
+        self.drives = [_Drive(d, stereo, size) for d in _find_drives(self.root, drives, held_out)]
         if cache_dir is not None:
             for drive in self.drives:
                 drive.use_cache(cache_dir)
+        if hints:
+            if cache_dir is None or size is None:
+                raise ValueError("KittiRawSnippets: depth hints need a cache folder and a working size "
+                                 "(data.frame_cache_dir, data.height, data.width)")
+            for drive in self.drives:
+                drive.use_hints(cache_dir)
         margin = 1 if temporal else 0
         self.samples: list[tuple[int, int]] = [(k, i) for k, drive in enumerate(self.drives)
                                                for i in range(margin, len(drive.left) - margin)]
@@ -245,6 +295,8 @@ class KittiRawSnippets(Dataset):
         if self.stereo and drive.right is not None:
             sample["image_right"] = drive.frame("right", i)
             sample["T_right_left"] = stereo_transform(drive.baseline)
+        if drive.hints is not None:
+            sample["depth_hint"] = drive.hints[i]
         if drive.poses is not None:
             sample["pose"] = torch.as_tensor(drive.poses[i], dtype=torch.float32)
             if self.temporal:

@@ -24,7 +24,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from dfvo.data.kitti_odometry import selects_kitti_odometry
 from dfvo.eval.alignment import AlignMode
 from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
-from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
+from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode, check_camera_height
 from dfvo.training.online_flow import OnlineFlowConfig
 from dfvo.validation import check, choice, typed
 
@@ -326,6 +326,8 @@ class InferConfig:
 
     def __post_init__(self) -> None:
         choice(AlignMode, self.align, "align")
+        check(self.num_threads is None or int(self.num_threads) >= 1,
+              f"num_threads={self.num_threads}; expected a positive number of torch threads, or null (torch's default)")
         check(int(self.batch_size) >= 1, f"batch_size={self.batch_size}; expected a positive number of frame pairs")
         every = int(self.depth.every)  # >= 1: DepthSourceConfig's own check
         check(every == 1 or (self.tracker.scale.depth_views == 2 and self.tracker.mode != TrackerMode.pnp),
@@ -338,12 +340,11 @@ class InferConfig:
         height = self.data.get("camera_height") if isinstance(self.data, DictConfig) else \
             getattr(self.data, "camera_height", None)
         kind = self.data.get("kind") if isinstance(self.data, DictConfig) else getattr(self.data, "kind", None)
-        if selects_kitti_odometry(kind, self.seq):
+        if selects_kitti_odometry(kind, self.seq) and height is None:
             height = KittiOdomDataConfig.camera_height  # `seq=NN` alone runs KITTI odometry (frames.resolve_data)
+        check_camera_height(height, "data.camera_height")
         if height is not None and self.tracker.scale.camera_height is None and \
                 self.tracker.scale.camera_height_from_data:  # the dataset's camera height
-            if not float(height) > 0:
-                raise ValueError(f"data.camera_height={height}; expected a height in metres > 0, or null (unknown)")
             self.tracker.scale.camera_height = float(height)
 
 

@@ -11,6 +11,7 @@ Convention (of the sequence):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from dataclasses import replace
@@ -48,7 +49,8 @@ def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
 
     ``seq`` overrides ``data.seq``. A KITTI odometry sequence number (``seq=10``) with the default synthetic data
     selects KITTI odometry (the synthetic world's sequences are scenario names), with its root from
-    ``DFVO_KITTI_ODOM_ROOT``. A missing ``data.root`` is taken from the kind's environment variable
+    ``DFVO_KITTI_ODOM_ROOT`` and the settings both kinds have (``data.start``, ``end``, ``step``, ``camera_height``)
+    as given. A missing ``data.root`` is taken from the kind's environment variable
     (:data:`DATA_ROOT_ENV`).
 
     Args:
@@ -64,7 +66,10 @@ def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
     """
     name = None if seq is None else str(seq)
     if selects_kitti_odometry(data.kind, name):
-        data = KittiOdomDataConfig(start=data.start, end=data.end)
+        # every setting the two kinds share that the command line gave (start, end, step, camera_height) carries over
+        shared = {f.name for f in dataclasses.fields(KittiOdomDataConfig)} - {"kind", "seq", "root"}
+        data = KittiOdomDataConfig(**{k: getattr(data, k) for k in shared
+                                      if getattr(data, k, None) is not None})
     name = name if name is not None else data.seq
     if data.kind == "kitti_odom" and name is not None and name.isdigit():
         name = name.zfill(2)
@@ -196,6 +201,9 @@ def _folder(data: Any, name: str | None, sel: slice) -> FrameSequence:
     _require_intrinsics(data)
     ds = ImageFolder(data.root, data.fx, data.fy, data.cx, data.cy, dist=data.dist)
     ids = list(range(len(ds)))[sel]
+    if len(ids) < 2:
+        raise ValueError(f"data=folder {data.root}: data.start={data.start}, data.end={data.end} select {len(ids)} of "
+                         f"its {len(ds)} frames; expected at least 2 (frames 0..{len(ds) - 1}, end exclusive)")
     seq = FrameSequence(name or Path(data.root).name, len(ids), ds.intrinsics.float(), lambda i: ds[ids[i]]["image"])
     seq.frame_ids = np.asarray(ids)
     return seq

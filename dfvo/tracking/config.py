@@ -63,6 +63,20 @@ class ScaleMethod(StrEnum):
     iterative = "iterative"
 
 
+
+MAX_CAMERA_HEIGHT_M = 20.0  # a camera higher above the road than this is a unit mistake (165 cm given as 165)
+
+
+def check_camera_height(height: float | None, setting: str) -> None:
+    """A camera height in metres: None (unknown / off) or in (0, :data:`MAX_CAMERA_HEIGHT_M`]; else one line naming
+    ``setting``, with the centimetre reading when the value looks like one."""
+    if height is None:
+        return
+    check(float(height) > 0, f"{setting}={height}; expected a height in metres > 0, or null (off)")
+    check(float(height) <= MAX_CAMERA_HEIGHT_M,
+          f"{setting}={height}; expected metres (the camera's height above the road, at most {MAX_CAMERA_HEIGHT_M:g} "
+          f"m); for {height} cm give {float(height) / 100:g}")
+
 @dataclass
 class ModelSelectionConfig:
     """E-tracker or PnP-tracker (``tracker.model_selection``).
@@ -148,8 +162,7 @@ class ScaleConfig:
 
     def __post_init__(self) -> None:
         self.method = choice(ScaleMethod, self.method, "tracker.scale.method")
-        check(self.camera_height is None or self.camera_height > 0,
-               f"tracker.scale.camera_height={self.camera_height}; expected a height in metres > 0, or null (off)")
+        check_camera_height(self.camera_height, "tracker.scale.camera_height")
         check(self.depth_views in (1, 2), f"tracker.scale.depth_views={self.depth_views}; expected 1 or 2")
         check(self.views_max_ratio > 1.0, f"tracker.scale.views_max_ratio={self.views_max_ratio}; expected > 1")
         check(self.max_depth > 0 and self.inlier_threshold > 0,

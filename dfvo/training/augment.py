@@ -72,7 +72,7 @@ def flip_batch(batch: dict[str, torch.Tensor], flip: torch.Tensor) -> dict[str, 
     """Mirror the samples where ``flip`` (B,) is True: images, ``K`` and ``T_right_left`` (see module docstring).
 
     Returns a new dict; keys other than images, ``K`` and ``T_right_left`` are passed through unchanged (a
-    ``depth`` map, if present, is mirrored too).
+    ``depth`` map or ``depth_hint``, if present, is mirrored too).
     """
     image = batch["image"]
     KORNIA_CHECK_SHAPE(image, ["B", "3", "H", "W"])
@@ -83,7 +83,7 @@ def flip_batch(batch: dict[str, torch.Tensor], flip: torch.Tensor) -> dict[str, 
     W = image.shape[-1]
     out = dict(batch)
     f = flip.to(image.device)
-    for key in (*IMAGE_KEYS, "depth"):
+    for key in (*IMAGE_KEYS, "depth", "depth_hint"):
         if key in batch:
             x = batch[key]
             out[key] = torch.where(f.view(-1, 1, 1, 1), x.flip(-1), x)

@@ -87,6 +87,9 @@ class DepthModelConfig:
         w_consistency: λ_dc of the inverse-depth consistency (paper "Mono-SC": 5).
         w_depth_supervised: weight of the log-depth L1 against true depth where the batch has it (synthetic
             samples; 0: the paper's self-supervised loss alone).
+        w_depth_hints: weight of the depth-hint loss (Watson et al. 2019): at every scale, ``log(1 + |D - H|)``
+            where the batch's stereo-matcher depth ``H`` (``data.depth_hints=true``) reprojects the stereo partner
+            with a lower photometric error than the network's depth ``D`` does any source view (0: off).
         automask: monodepth2's identity reprojection mask.
         min_depth, max_depth: depth range (metres). init_depth: initial depth of the disparity heads (metres; null:
             sigmoid 0.5); 10 m gives the stereo term a gradient from step 0.
@@ -109,6 +112,7 @@ class DepthModelConfig:
     w_smooth: float = 1e-3
     w_consistency: float = 0.0
     w_depth_supervised: float = 0.0
+    w_depth_hints: float = 0.0
     automask: bool = True
     min_depth: float = 0.1
     max_depth: float = 100.0
@@ -127,9 +131,11 @@ class DepthModelConfig:
             raise ValueError(f"model.task={self.task!r}; the depth schema (model/schema/depth) trains task 'depth'")
         if not (self.stereo or self.temporal):
             raise ValueError("model: at least one of model.stereo / model.temporal must be true")
-        for key in ("w_smooth", "w_consistency", "w_depth_supervised"):
+        for key in ("w_smooth", "w_consistency", "w_depth_supervised", "w_depth_hints"):
             if getattr(self, key) < 0:
                 raise ValueError(f"model.{key}={getattr(self, key)}; expected >= 0")
+        if self.w_depth_hints > 0 and not self.stereo:
+            raise ValueError("model.w_depth_hints > 0 needs model.stereo = true (hints reproject the stereo partner)")
         if self.w_consistency > 0 and not self.temporal:
             raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
         positive("model", min_depth=self.min_depth, lr=self.lr, lr_drop_fraction=self.lr_drop_fraction,

@@ -19,6 +19,7 @@ from typing import ClassVar
 
 from omegaconf import MISSING
 
+from dfvo.data.held_out import HELD_OUT_DRIVES
 from dfvo.validation import positive
 
 __all__ = ["CropMode", "TrainDataConfig", "WorldsTrainDataConfig", "SyntheticTrainDataConfig",
@@ -105,7 +106,11 @@ class KittiRawTrainDataConfig(TrainDataConfig):
     (i-s, i, i+s) for every s of ``frame_skips``; ``drives`` null: every drive under the root. Validation on the
     synthetic worlds (true depth). ``frame_cache_dir``: the frames decoded at the working size once, into
     memory-mapped files there (:mod:`dfvo.data.frame_cache`; ``data/kitti_raw.yaml``: ``RUNS/frame_cache``); null:
-    every frame decoded when read."""
+    every frame decoded when read. ``held_out_drives``: drives left out when ``drives`` is null (default: the Eigen
+    split's 28 test drives and drive 0005, :data:`dfvo.data.held_out.HELD_OUT_DRIVES`; a run that names one in
+    ``drives`` trains on it and says so). ``depth_hints``: add each target frame's stereo-matcher depth
+    (``depth_hint``, :mod:`dfvo.data.stereo_hints`; computed once into ``frame_cache_dir``) for
+    ``model.w_depth_hints``."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
@@ -114,6 +119,8 @@ class KittiRawTrainDataConfig(TrainDataConfig):
     drives: list[str] | None = None
     frame_skips: list[int] = field(default_factory=lambda: [1])
     frame_cache_dir: str | None = None
+    held_out_drives: list[str] = field(default_factory=lambda: list(HELD_OUT_DRIVES))
+    depth_hints: bool = False
 
 
 @dataclass
@@ -140,6 +147,7 @@ class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     root: str | None = None
     drives: list[str] | None = None
     frame_cache_dir: str | None = None
+    held_out_drives: list[str] = field(default_factory=lambda: list(HELD_OUT_DRIVES))
 
 
 def _training_seeds() -> list[int]:
@@ -169,8 +177,9 @@ class FlowMixTrainDataConfig(TrainDataConfig):
         render_scale: working size / network size. sensor_variation: exposure changes and sensor noise per world.
         device: where the worlds render (``cuda``: on the GPU). cache_dir: the render cache folder (null: render at
             every start, keep nothing).
-        root, drives: KITTI raw (``ROOT/DATE/DATE_drive_XXXX_sync``, or one DATE folder; ``drives`` null: all),
-            needed when a phase has ``kitti``; ``root`` null: the environment variable ``DFVO_KITTI_RAW_ROOT``.
+        root, drives: KITTI raw (``ROOT/DATE/DATE_drive_XXXX_sync``, or one DATE folder; ``drives`` null: all but
+            ``held_out_drives``, as ``data=kitti_raw``), needed when a phase has ``kitti``; ``root`` null: the
+            environment variable ``DFVO_KITTI_RAW_ROOT``.
         kitti_batch_size: KITTI pairs per step in phases with ``kitti``.
         max_train_samples: use only the first N synthetic pairs (rendering stops at the world that completes them).
         val_seeds, val_scenarios, val_num_frames, val_every: the held-out evaluation: per scenario, the pairs (k, k+1),
@@ -194,6 +203,7 @@ class FlowMixTrainDataConfig(TrainDataConfig):
     cache_dir: str | None = None
     root: str | None = None
     drives: list[str] | None = None
+    held_out_drives: list[str] = field(default_factory=lambda: list(HELD_OUT_DRIVES))
     kitti_batch_size: int = 2
     val_seeds: list[int] = field(default_factory=lambda: [1002, 1003])
     val_scenarios: list[str] = field(default_factory=_all_scenarios)

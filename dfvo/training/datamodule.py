@@ -139,11 +139,13 @@ class DFVODataModule(L.LightningDataModule):
         try:
             if skips == [1]:
                 return KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo, temporal=True,
-                                        cache_dir=cache)
+                                        cache_dir=cache, held_out=data.held_out_drives,
+                                        hints=getattr(data, "depth_hints", False))
             # KittiRawSnippets has no gap: its frame-level form (temporal=False) needs stereo=True, so snippets with
             # gaps read the right images too (dropped below for models without stereo)
             frames = KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=True, temporal=False,
-                                      cache_dir=cache)
+                                      cache_dir=cache, held_out=data.held_out_drives,
+                                      hints=getattr(data, "depth_hints", False))
         except (OSError, ValueError) as err:
             raise type(err)(f"data={self.name} (data.root={root}): {err}") from err
         sequences: dict[int, list[int]] = {}

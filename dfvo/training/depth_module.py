@@ -16,7 +16,10 @@ SSIM+L1 error takes a per-pixel minimum over views (out-of-view pixels excluded)
 ``model.w_depth_supervised`` x the log-depth L1 of that scale's depth against the batch's true ``depth``
 (:func:`dfvo.losses.depth_supervision.log_depth_l1`; synthetic samples; a target <= 0 marks a pixel without
 ground truth, e.g. a real sample of a mixed batch; sky clamped to ``max_depth``) when the batch has ``depth`` and
-the weight is > 0 (default 0: the paper's self-supervised loss alone).
+the weight is > 0 (default 0: the paper's self-supervised loss alone), plus ``model.w_depth_hints`` x the depth-hint
+loss (Watson et al. 2019): ``log(1 + |D_s - H|)`` averaged over the image, counted at the pixels where the batch's
+stereo-matcher depth ``H`` (``depth_hint``, 0: none) reprojects the stereo partner with a lower SSIM+L1 error than
+the scale's depth ``D_s`` reaches with any source view.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
 from dfvo.io.checkpoint import load_weights, read_state_dict
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.depth_supervision import log_depth_l1
-from dfvo.losses.photometric import min_over_views, ssim_l1_error
+from dfvo.losses.photometric import INVALID_ERROR, min_over_views, ssim_l1_error
 from dfvo.losses.reprojection import reproject
 from dfvo.losses.smoothness import edge_aware_smoothness
 from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth
@@ -41,6 +44,7 @@ from dfvo.models.pose_net import PoseNet
 from dfvo.training.augment import augment_depth_batch
 from dfvo.training.config import DepthModelConfig, typed
 from dfvo.training.hparams import recorded_config
+from dfvo.training.optimizer import adam
 from dfvo.training.precision import float32_losses
 
 
@@ -66,6 +70,7 @@ class DepthPoseModule(L.LightningModule):
         self.alpha, self.w_smooth, self.w_consistency = m.alpha, m.w_smooth, m.w_consistency
         self.automask = m.automask
         self.w_depth_supervised = m.w_depth_supervised
+        self.w_depth_hints = m.w_depth_hints
         self.min_depth, self.max_depth = m.min_depth, m.max_depth
         self.lr, self.lr_drop_fraction = m.lr, m.lr_drop_fraction
         self.log_images_every = m.log_images_every
@@ -153,6 +158,7 @@ class DepthPoseModule(L.LightningModule):
         identity = []
         if self.automask:
             identity = list((ssim_l1_error(image_all, srcs, self.alpha) + 1e-5).split(B))
+        hint = self._hint_reprojection(batch, sources) if self.w_depth_hints > 0 else None
         terms: dict[str, torch.Tensor] = {}
         total = image.new_zeros(())
         vis: dict[str, torch.Tensor] = {}
@@ -186,6 +192,15 @@ class DepthPoseModule(L.LightningModule):
                 cons = depth_consistency_loss(diffs, dvalids)
                 loss_s = loss_s + self.w_consistency * cons
                 terms[f"consistency_s{s}"] = cons.detach()
+            if hint is not None:
+                hint_depth, hint_error = hint
+                own = torch.stack([torch.where(v, e, torch.full_like(e, INVALID_ERROR))
+                                   for e, v in zip(errors[len(identity):], valids[len(identity):])]).amin(0)
+                use = (hint_error < own).float()
+                hint_loss = (torch.log1p((depth - hint_depth).abs()) * use).mean()
+                loss_s = loss_s + self.w_depth_hints * hint_loss
+                terms[f"depth_hints_s{s}"] = hint_loss.detach()
+                terms[f"depth_hints_used_s{s}"] = use.mean().detach()
             if self.w_depth_supervised > 0 and "depth" in batch:
                 sup, _ = log_depth_l1(depth, batch["depth"], self.max_depth)
                 loss_s = loss_s + self.w_depth_supervised * sup
@@ -194,6 +209,21 @@ class DepthPoseModule(L.LightningModule):
             total = total + loss_s / len(SCALES)
         vis["disp"] = disps[0].detach()
         return total, terms, vis
+
+    @torch.no_grad()
+    def _hint_reprojection(self, batch: dict[str, torch.Tensor], sources: list[tuple[str, torch.Tensor, torch.Tensor]]
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The batch's depth hints (B,1,H,W) and the photometric error (B,1,H,W) of the stereo partner reprojected
+        with them (+inf where there is no hint, it is beyond ``max_depth`` or it leaves the image)."""
+        if "depth_hint" not in batch:
+            raise KeyError("model.w_depth_hints > 0: the batch has no 'depth_hint'; use data=kitti_raw with "
+                           "data.depth_hints=true")
+        name, src, T = next(x for x in sources if x[0] == "stereo")
+        hint = batch["depth_hint"].float()
+        rep = reproject(src, hint.clamp_min(self.min_depth), T, batch["K"].float())
+        error = ssim_l1_error(batch["image"], rep.warped, self.alpha)
+        ok = rep.valid & (hint > 0) & (hint <= self.max_depth)
+        return hint, torch.where(ok, error, torch.full_like(error, float("inf")))
 
     # ---------------------------------------------------------------- steps
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
@@ -237,7 +267,8 @@ class DepthPoseModule(L.LightningModule):
 
     def configure_optimizers(self) -> dict[str, Any]:
         params = list(self.depth_net.parameters()) + (list(self.pose_net.parameters()) if self.pose_net else [])
-        optimizer = torch.optim.Adam(params, lr=self.lr)
+        optimizer = adam(params, self.lr, self.device,
+                         clipped=self._trainer is not None and self._trainer.gradient_clip_val is not None)
         total = max(int(self.trainer.estimated_stepping_batches), 1) if self._trainer is not None else 1
         drop_at = int(self.lr_drop_fraction * total)
         scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0 if step < drop_at else 0.1)

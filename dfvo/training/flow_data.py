@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -93,13 +93,15 @@ class SyntheticPairs:
                 "flow_bwd_valid": valid[:, 1]}
 
 
-def kitti_raw_drives(root: str | Path, drives: list[str] | None, working: tuple[int, int]) -> Any:
-    """The KITTI raw drives under ``root`` (file lists and calibration read, no image decoded): a
-    :class:`dfvo.data.kitti_raw.KittiRawSnippets`. Raises the dataset's one-line errors for a root without the
-    layout."""
+def kitti_raw_drives(root: str | Path, drives: list[str] | None, working: tuple[int, int],
+                     held_out: Sequence[str] = ()) -> Any:
+    """The KITTI raw drives under ``root`` (``drives``, or all but ``held_out``; file lists and calibration read, no
+    image decoded): a :class:`dfvo.data.kitti_raw.KittiRawSnippets`. Raises the dataset's one-line errors for a
+    root without the layout."""
     from dfvo.data.kitti_raw import KittiRawSnippets
 
-    return KittiRawSnippets(root, working[0], working[1], drives=drives, stereo=False, temporal=True)
+    return KittiRawSnippets(root, working[0], working[1], drives=drives, stereo=False, temporal=True,
+                            held_out=held_out)
 
 
 class KittiRawPairs:
@@ -111,8 +113,8 @@ class KittiRawPairs:
     """
 
     def __init__(self, root: str | Path, drives: list[str] | None, size: tuple[int, int], working: tuple[int, int],
-                 frame_skips: list[int]) -> None:
-        snippets = kitti_raw_drives(root, drives, working)
+                 frame_skips: list[int], held_out: Sequence[str] = ()) -> None:
+        snippets = kitti_raw_drives(root, drives, working, held_out)
         frames, pairs = [], []
         for drive in snippets.drives:
             first = len(frames)
@@ -215,7 +217,8 @@ class FlowMixDataModule(L.LightningDataModule):
         if d.device != "cpu" and d.num_workers > 0:
             raise ValueError(f"data.device={d.device} renders in the main process; set data.num_workers=0")
         if self.needs_kitti:  # the layout is checked now, before minutes of rendering
-            self._kitti_call(kitti_raw_drives, self.kitti_root, self._drives(), self.working)
+            self._kitti_call(kitti_raw_drives, self.kitti_root, self._drives(), self.working,
+                             self.data.held_out_drives)
         self.synthetic: SyntheticPairs | None = None
         self.kitti: KittiRawPairs | None = None
         self.val_set: HeldOutSets | None = None
@@ -277,7 +280,7 @@ class FlowMixDataModule(L.LightningDataModule):
             log.info("synthetic training pairs: %d", len(self.synthetic))
         if self.needs_kitti and self.kitti is None:
             self.kitti = self._kitti_call(KittiRawPairs, self.kitti_root, self._drives(), self.size, self.working,
-                                          list(self.data.frame_skips))
+                                          list(self.data.frame_skips), self.data.held_out_drives)
             log.info("KITTI raw pairs: %d from %d drives", len(self.kitti), self.kitti.num_drives)
         if self.has_validation and self.val_set is None:
             d = self.data

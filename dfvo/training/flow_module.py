@@ -48,6 +48,7 @@ from dfvo.training.config import FlowMode, FlowModelConfig, typed
 from dfvo.training.flow_augment import augment_self_supervised, augment_supervised
 from dfvo.training.flow_data import phase_at
 from dfvo.training.hparams import recorded_config
+from dfvo.training.optimizer import adam
 from dfvo.training.precision import float32_losses
 from dfvo.training.sampling import step_generator
 from dfvo.vis.colour import flow_to_color, scalar_to_color
@@ -291,13 +292,18 @@ class FlowModule(L.LightningModule):
         dropped = step - start >= self.lr_drop_fraction * phase.steps
         return phase.lr * (self.lr_gamma if dropped else 1.0)
 
+    def _clipped(self) -> bool:
+        """Whether gradients are clipped (``model.grad_clip_norm`` or the trainer's ``gradient_clip_val``)."""
+        trainer = self._trainer
+        return self.grad_clip_norm is not None or (trainer is not None and trainer.gradient_clip_val is not None)
+
     def configure_optimizers(self) -> dict[str, Any]:
         if self.mode == FlowMode.mixed.value:
             base = self.lr_at(0)
-            optimizer = torch.optim.Adam(self.net.parameters(), lr=base)
+            optimizer = adam(self.net.parameters(), base, self.device, clipped=self._clipped())
             scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: self.lr_at(step) / base)
             return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
-        optimizer = torch.optim.Adam(self.net.parameters(), lr=self.lr)
+        optimizer = adam(self.net.parameters(), self.lr, self.device, clipped=self._clipped())
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=self.lr_milestones,
                                                          gamma=self.lr_gamma)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}

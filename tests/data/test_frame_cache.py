@@ -64,3 +64,4 @@ def test_kitti_raw_snippets_read_through_the_cache(kitti_raw_root: Path, tmp_pat
         a, b = plain[i], cached[i]
         for key in ("image", "image_prev", "image_next", "image_right"):
             torch.testing.assert_close(b[key], a[key], rtol=0, atol=2.5e-4)
+

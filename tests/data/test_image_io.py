@@ -132,3 +132,32 @@ def test_read_with_size_equals_resize_of_full_read(tmp_path: Path, gray: bool) -
     assert torch.equal(read_image(tmp_path / "a.png", size=(75, 124)), full)  # same size: no resampling
     with pytest.raises(DatasetError, match=r"a.png is 75x124, expected 76x124"):
         read_image(tmp_path / "a.png", expected_size=(76, 124))
+
+
+def test_float_frames_with_negative_strides_and_0_255_floats() -> None:
+    """Issue 42: a float frame given as frame[..., ::-1] (BGR to RGB) is read like its copy; a float frame in 0-255
+    is refused in one line instead of tracking nothing."""
+    from dfvo.data.image_io import array_to_image
+
+    rgb = np.random.default_rng(0).random((6, 8, 3), dtype=np.float32)
+    bgr = np.ascontiguousarray(rgb[..., ::-1])
+    assert torch.equal(array_to_image(bgr[..., ::-1]), array_to_image(rgb))
+    scaled = rgb * 255
+    scaled[0, 0, 0] = 255.0
+    with pytest.raises(ValueError, match="values up to 255; expected \\[0,1\\]"):
+        array_to_image(scaled)
+
+
+def test_folder_with_a_frame_twice_or_a_broken_link_is_refused(tmp_path: Path) -> None:
+    """Issue 42: every frame exported twice (000001.png and 000001.jpg) gave twice the poses; a dangling link was
+    skipped silently and shifted every later pose. Both are refused in one line naming the files."""
+    for i in range(3):
+        Image.fromarray(np.zeros((4, 6, 3), np.uint8)).save(tmp_path / f"{i:06d}.png")
+    assert [p.name for p in list_images(tmp_path)] == ["000000.png", "000001.png", "000002.png"]
+    Image.fromarray(np.zeros((4, 6, 3), np.uint8)).save(tmp_path / "000001.jpg")
+    with pytest.raises(DatasetError, match=r"1 frame name with more than one file \(e.g. 000001.jpg, 000001.png\)"):
+        list_images(tmp_path)
+    (tmp_path / "000001.jpg").unlink()
+    (tmp_path / "000003.png").symlink_to(tmp_path / "gone.png")
+    with pytest.raises(DatasetError, match=r"1 broken link \(000003.png\)"):
+        list_images(tmp_path)

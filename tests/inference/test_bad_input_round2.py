@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from dfvo.synthetic import SyntheticWorld
 
@@ -466,3 +467,42 @@ def test_misspelt_key_names_the_closest_valid_key(tmp_path: Path, tool: list[str
     assert proc.returncode == (2 if "dfvo.evaluate" in tool else 1)
     assert error_line(proc) == line
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("num_threads=-2", "num_threads=-2; expected a positive number of torch threads"),
+    ("data.camera_height=165", "data.camera_height=165.0; expected metres (the camera's height above the road, at "
+                               "most 20 m); for 165.0 cm give 1.65"),
+    ("tracker.scale.camera_height=150", "tracker.scale.camera_height=150.0; expected metres"),
+])
+def test_round3_settings_are_one_line(infer_cli, override: str, message: str) -> None:
+    """Issue 42: a negative thread count and a camera height given in centimetres end in one line naming the
+    setting (they used to be a 39-line traceback and a silently 100x longer path)."""
+    proc = infer_cli("data.num_frames=3", override, check=False)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert message in error_line(proc), proc.stderr[-1000:]
+
+
+@pytest.mark.parametrize("window", [("data.start=8",), ("data.start=3", "data.end=2")])
+def test_folder_frame_window_outside_the_folder_is_one_line(infer_cli, tmp_path: Path, window: tuple[str, ...]) -> None:
+    """Issue 42: data=folder with data.start past the folder's end, or start after end: one line naming the folder
+    and its frame count (it used to be an IndexError traceback)."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(5):
+        Image.fromarray(np.full((48, 64, 3), 40 * i, np.uint8)).save(folder / f"{i:06d}.png")
+    proc = infer_cli("data=folder", f"data.root={folder}", "data.fx=50", "data.fy=50", "data.cx=32", "data.cy=24",
+                     *window, f"out_dir={tmp_path / 'out'}", check=False)
+    assert proc.returncode == 1
+    line = error_line(proc)
+    assert f"data=folder {folder}" in line and "of its 5 frames; expected at least 2" in line, line
+
+
+def test_dataset_setting_without_the_dataset_names_data_kind(infer_cli) -> None:
+    """Issue 42: `infer.py seq=06 data.root=ROOT` (data= forgotten) says to choose the dataset first; a typo of a
+    synthetic setting still gets the closest key."""
+    proc = infer_cli("seq=06", "data.root=/somewhere", check=False)
+    assert proc.returncode == 1
+    assert "has no data.root: choose the dataset first, e.g. data=kitti_odom data.root=..." in error_line(proc)
+    proc = infer_cli("data.num_frams=3", check=False)
+    assert "the closest valid key is 'data.num_frames'" in error_line(proc)

@@ -537,3 +537,17 @@ def test_kitti_sequence_number_runs_kitti_odometry_from_the_environment(kitti_od
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert len(read_poses(out / "10.txt")) == 4 and (out / "metrics.json").is_file()
+
+
+def test_kitti_sequence_from_the_environment_keeps_step_and_camera_height(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``DFVO_KITTI_ODOM_ROOT=... infer.py seq=06 data.step=2 data.camera_height=1.5`` (a README command) keeps the
+    step and the height it was given (it used to run every frame with KITTI's 1.65 m: issue 42)."""
+    from dfvo.inference.config import KittiOdomDataConfig, SyntheticDataConfig
+    from dfvo.inference.frames import resolve_data
+
+    monkeypatch.setenv("DFVO_KITTI_ODOM_ROOT", "/kitti")
+    data, name = resolve_data(SyntheticDataConfig(start=1, end=9, step=2, camera_height=1.5), "6")
+    assert isinstance(data, KittiOdomDataConfig) and name == "06" and data.root == "/kitti"
+    assert (data.start, data.end, data.step, data.camera_height) == (1, 9, 2, 1.5)
+    data, _ = resolve_data(SyntheticDataConfig(step=3), "06")
+    assert (data.step, data.camera_height) == (3, KittiOdomDataConfig().camera_height)

@@ -181,8 +181,10 @@ def test_infer_with_depth_on_every_second_frame(tmp_path: Path) -> None:
 def test_pairs_without_any_depth_still_get_a_pose() -> None:
     """Every 3rd frame with depth: pairs (1, 2) and (4, 5) have none in either frame. On the straight, (1, 2) keeps
     the E-tracker's direction with the length of the three-frame relative scale (triangulation against the previous
-    pair: no depth needed; exact on exact flow); in the turn, (4, 5) wants PnP, which has no points: constant
-    motion, flagged with the reason. Never a crash, never a missing pose."""
+    pair: no depth needed; exact on exact flow). In the turn, (4, 5) sits at GRIC's border between E and PnP (the
+    choice flips with the CPU's last bits: ATEN_CPU_CAPABILITY=default vs avx2): either the E-tracker with the
+    temporal length, or PnP, which has no points, so constant motion flagged with the reason. Never a crash, never
+    a missing pose."""
     w, ff, fb, d, d_next = _pairs("drive", 8, 3)
     assert not has_depth(d[1:2]) and not has_depth(d_next[1:2])
     res = VisualOdometry(_cfg()).run(ff, fb, d, w.intrinsics(), batch_size=4, depths_next=d_next)
@@ -191,4 +193,7 @@ def test_pairs_without_any_depth_still_get_a_pose() -> None:
     assert straight.tracker == "E" and straight.scale_cnn is None and straight.scale_source == "temporal", straight
     assert _step_errors(w, res[:4]).max() < 1e-3
     turn = res[4].diagnostics
-    assert turn.tracker == "constant_motion" and "PnP failed" in turn.fallback_reason, turn
+    if turn.tracker == "constant_motion":
+        assert "PnP failed" in turn.fallback_reason, turn
+    else:
+        assert turn.tracker == "E" and turn.scale_cnn is None and turn.scale_source == "temporal", turn

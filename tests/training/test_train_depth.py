@@ -294,3 +294,31 @@ def test_init_from_loads_depth_weights_and_names_a_wrong_file(tmp_path: Path) ->
     save_file({k: v.contiguous() for k, v in FlowNet("tiny").state_dict().items()}, str(flow))
     with pytest.raises(CheckpointError, match="model.init_from=.*flow.safetensors"):
         DepthPoseModule(_cfg(tmp_path, "model=depth_stereo", f"model.init_from={flow}"))
+
+
+def test_depth_hints_reprojection_and_loss() -> None:
+    """The hint reprojection of a synthetic stereo pair: the true depth as hint reprojects the partner far better
+    than twice the depth does; a batch without hints is refused in one line naming data.depth_hints; with hints the
+    loss has its per-scale terms, finite (issue 38)."""
+    from omegaconf import OmegaConf
+
+    from dfvo.synthetic import SyntheticSequenceDataset
+    from dfvo.training.depth_module import DepthPoseModule
+
+    s = SyntheticSequenceDataset([0], 4, 64, 192)[1]
+    batch = {k: v[None] for k, v in s.items() if isinstance(v, torch.Tensor) and v.dim() > 0}
+    cfg = OmegaConf.create({"model": {"_target_": "dfvo.training.depth_module.DepthPoseModule", "task": "depth",
+                                      "name": "depth_stereo", "temporal": False, "w_depth_hints": 1.0,
+                                      "augment": None},
+                            "data": {"height": 64, "width": 192, "seed": 0}})
+    module = DepthPoseModule(cfg)
+    sources = module._sources(batch)
+    true_err = module._hint_reprojection({**batch, "depth_hint": batch["depth"]}, sources)[1]
+    far_err = module._hint_reprojection({**batch, "depth_hint": 2 * batch["depth"]}, sources)[1]
+    both = torch.isfinite(true_err) & torch.isfinite(far_err)
+    assert both.float().mean() > 0.5 and true_err[both].mean() < 0.5 * far_err[both].mean()
+    with pytest.raises(KeyError, match="data.depth_hints=true"):
+        module._losses(batch)
+    loss, terms, _ = module._losses({**batch, "depth_hint": batch["depth"]})
+    assert torch.isfinite(loss) and {"depth_hints_s0", "depth_hints_used_s3"} <= set(terms)
+    assert 0 < float(terms["depth_hints_used_s0"]) <= 1
