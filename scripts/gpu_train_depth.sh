@@ -33,7 +33,7 @@ else
   # 320x96 as the shipped network (inference runs at the trained size; 640x192 costs 4x at inference as well)
   # the synthetic worlds are rendered by the CPU loader workers (~4 views per sample): the loader, not the GPU,
   # sets the pace; TIME_LIMIT stops a slower machine in time (SIGTERM: last.ckpt and the weights of the last
-  # finished step are written, exit 143; ckpt_path=RUNS_DIR/NAME/checkpoints/last.ckpt resumes)
+  # finished step are written, exit 143; running the script again continues it: resume=auto)
   STEPS=${STEPS:-1500}; BATCH=${BATCH:-16}; HEIGHT=${HEIGHT:-96}; WIDTH=${WIDTH:-320}; WORKERS=${WORKERS:-14}
   SEEDS=${SEEDS:-48}; FRAMES=${FRAMES:-24}; TRAINER="trainer=gpu"; VAL_FRAMES=12
   THREADS=${THREADS:-0}; EVAL_ARGS=""
@@ -49,7 +49,7 @@ timeout -k 20 "${TIME_LIMIT:-570}" $TRAIN_CMD model=depth_stereo data=kitti_raw_
   'data.speed=[0.3,3.0]' data.num_frames="$FRAMES" data.val_num_frames="$VAL_FRAMES" data.batch_size="$BATCH" \
   data.num_workers="$WORKERS" model.augment.gray_prob=0.2 model.w_depth_supervised="$W_SUP" "${init_arg[@]}" \
   $TRAINER trainer.max_steps="$STEPS" trainer.max_epochs=-1 trainer.enable_progress_bar=false \
-  threads="$THREADS" runs_dir="$RUNS_DIR" name="$NAME" \
+  threads="$THREADS" runs_dir="$RUNS_DIR" name="$NAME" resume=auto \
   || echo "training stopped (exit $?: 143 = TIME_LIMIT, last.ckpt written; else an error)"
 echo "training wall time: $(( $(date +%s) - start )) s"
 

@@ -19,9 +19,7 @@ cd "$(dirname "$0")/.."
 RUNS_DIR=${1:-runs}
 MODE=${2:-}
 TRAIN_CMD=${TRAIN_CMD:-python train.py}
-last="$RUNS_DIR/flow_gpu/checkpoints/last.ckpt"
-resume=()
-[ -f "$last" ] && resume=("ckpt_path=$last")
+resume=("resume=auto")  # continues RUNS_DIR/flow_gpu from its newest checkpoint, or starts it
 if [ "$MODE" = "--quick" ]; then
   # shellcheck disable=SC2086
   $TRAIN_CMD experiment=flow_gpu trainer=smoke data.device=cpu data.batch_size=2 data.kitti_batch_size=1 threads=1 \

@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
 from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
-from dfvo.io.checkpoint import load_weights, read_state_dict
+from dfvo.io.checkpoint import find_checkpoint, load_weights, read_state_dict
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.depth_supervision import log_depth_l1
 from dfvo.losses.photometric import INVALID_ERROR, min_over_views, ssim_l1_error
@@ -88,7 +88,9 @@ class DepthPoseModule(L.LightningModule):
         return self.depth_net, {"task": "depth", "min_depth": str(self.min_depth), "max_depth": str(self.max_depth)}
 
     def _init_weights_from(self, path: str) -> None:
-        """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path``."""
+        """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path`` (a
+        relative path that does not exist is looked up in the installed package, as for flow: ``checkpoints/...``)."""
+        path = str(find_checkpoint(path, "model.init_from"))
         load_weights(self.depth_net, path, "depth network DepthNet", "model.init_from", task="depth")
         if self.pose_net is None:
             return

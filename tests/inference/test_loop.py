@@ -91,10 +91,17 @@ def test_overlap_and_batch_size_do_not_change_the_poses(world_data: tuple) -> No
             torch.testing.assert_close(b.result.T_w_cur, a.result.T_w_cur, atol=1e-9, rtol=0)
             assert b.result.diagnostics.tracker == a.result.diagnostics.tracker
             assert b.result.diagnostics.num_inliers == a.result.diagnostics.num_inliers
-    # the tracker worked on the refined flows: every frame tracked (no constant motion), close to the truth
+    # the tracker worked on the refined flows: every frame tracked (no constant motion), the path's length that of
+    # the truth (oracle depth: 5 %) and its end near the truth's. The end's error is 6-12 % of the distance depending
+    # on the CPU's kernels (ATEN_CPU_CAPABILITY=default: 11.6 %; 8 pairs of 64x224 frames with 1 px flow noise), so
+    # it is bounded at 20 %: a tracker on unrefined flows falls back to constant motion and fails the first check.
     assert all(r.result.diagnostics.tracker.value in ("E", "PnP") for r in ref)
     true = torch.from_numpy(np.linalg.inv(seq.poses[0]) @ seq.poses[-1])
-    assert float((ref[-1].result.T_w_cur[:3, 3] - true[:3, 3]).norm()) < 0.1 * float(true[:3, 3].norm())
+    positions = torch.stack([torch.zeros(3, dtype=torch.float64)] + [r.result.T_w_cur[:3, 3] for r in ref])
+    true_positions = torch.from_numpy(np.stack([(np.linalg.inv(seq.poses[0]) @ p)[:3, 3] for p in seq.poses]))
+    length, true_length = (positions.diff(dim=0).norm(dim=1).sum(), true_positions.diff(dim=0).norm(dim=1).sum())
+    assert abs(float(length / true_length) - 1) < 0.05, (float(length), float(true_length))
+    assert float((ref[-1].result.T_w_cur[:3, 3] - true[:3, 3]).norm()) < 0.2 * float(true[:3, 3].norm())
     assert {"load", "flow", "refine", "depth", "tracker", "wait_load", "wait_tracker"} <= set(timer.total)
     assert all(r.stage_seconds["t_tracker"] > 0 for r in out)
 

@@ -140,3 +140,12 @@ def test_train_py_experiment_smoke_cli(tmp_path: Path, kitti_raw_root: Path) -> 
     noise = ("litlogger", "litmodels", "Tip:", "Warning", "deprecated")
     assert not [line for line in lines if any(n in line for n in noise)], lines
     assert sorted(p.name for p in (tmp_path / "flow_fast" / "checkpoints").iterdir()) == ["last.ckpt"]
+
+
+def test_depth_hints_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
+    """`python train.py experiment=depth_hints trainer=smoke` (tiny): the SGBM hints are computed into the frame
+    cache, used by the loss (its terms logged), from the shipped depth network (a package path)."""
+    out = _run(tmp_path, "experiment=depth_hints", f"data.root={kitti_raw_root.parent}", *TINY_DEPTH)
+    assert out["global_step"] == 3 and "train/depth_hints_s0" in out["metrics"]
+    assert list((tmp_path / "frame_cache").glob("*_sgbm_hints_64x128_*.npy"))
+    assert out["module"].hparams["cfg"]["model"]["initialised_from"].endswith("checkpoints/depth.safetensors")
