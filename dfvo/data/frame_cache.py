@@ -35,7 +35,7 @@ def cache_key(paths: Sequence[Path], size: tuple[int, int], channels: int = 3) -
     for p in paths:
         st = Path(p).stat()
         files.append([Path(p).name, st.st_size, st.st_mtime_ns])
-    text = json.dumps([CACHE_FORMAT, list(size), files] + ([channels] if channels != 3 else []))
+    text = json.dumps([CACHE_FORMAT, list(size), channels, files])
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 

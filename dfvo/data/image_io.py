@@ -62,14 +62,14 @@ def list_images(folder: str | Path, what: str = "image folder") -> list[Path]:
         DatasetError: ``folder`` holds no PNG/JPEG file, a frame name twice (two extensions), or a broken link.
     """
     folder = require_dir(folder, what)
-    candidates = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
-    broken = sorted((p.name for p in candidates if p.is_symlink() and not p.exists()), key=lambda n: _natural_key(
-        Path(n)))
+    named = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+    broken = sorted((p.name for p in named if not p.name.startswith(".") and p.is_symlink() and not p.exists()),
+                    key=lambda n: _natural_key(Path(n)))
     if broken:
         raise DatasetError(f"{what}: {folder} holds {len(broken)} broken link{'s' if len(broken) > 1 else ''} "
                            f"({', '.join(broken[:3])}{', ...' if len(broken) > 3 else ''}): every frame file must be "
                            "readable (a skipped one would shift every later pose to the wrong frame); fix or remove")
-    images = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    images = [p for p in named if p.is_file()]
     files = [p for p in images if not p.name.startswith(".")]
     hidden = sorted((p.name for p in images if p.name.startswith(".")), key=lambda n: _natural_key(Path(n)))
     if hidden:

@@ -124,8 +124,6 @@ def oxts_camera_poses(drive_dir: str | Path, camera: int = 2) -> np.ndarray | No
     return T_cam_imu @ T_imu0_imu @ np.linalg.inv(T_cam_imu)
 
 
-
-
 def _find_drives(root: Path, drives: list[str] | None, held_out: Sequence[str] = ()) -> list[Path]:
     """Drive folders ``DATE/DATE_drive_XXXX_sync`` under ``root`` (a dataset root or one DATE folder): ``drives``,
     or every drive but those named in ``held_out`` (left out with one log line; naming one in ``drives`` trains on

@@ -23,6 +23,7 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.losses.photometric import ssim_l1_error
 from dfvo.losses.smoothness import edge_aware_smoothness
+from dfvo.matching.consistency import inconsistency_at
 from dfvo.matching.flow_warp import flow_magnitude, warp_by_flow
 
 
@@ -104,9 +105,7 @@ def _occlusion_from_warp(flow_fwd: torch.Tensor, bwd_at: torch.Tensor, inside: t
     """:func:`occlusion_mask` from the backward flow already sampled at the forward targets (``bwd_at``, (B,2,H,W))
     and the targets' ``inside`` mask (B,1,H,W): the inconsistency is
     :func:`~dfvo.matching.consistency.forward_backward_inconsistency`'s, computed from the same warp."""
-    diff = flow_magnitude(flow_fwd + bwd_at)
-    finite = torch.isfinite(diff)
-    diff = torch.where(inside & finite, diff, torch.full_like(diff, float("inf")))
+    diff = inconsistency_at(flow_fwd, bwd_at, inside)
     finite = torch.isfinite(diff)
     mag2 = flow_fwd.pow(2).sum(1, keepdim=True) + bwd_at.pow(2).sum(1, keepdim=True)
     visible = inside & finite & (torch.where(finite, diff, torch.zeros_like(diff)).pow(2) <= alpha1 * mag2 + alpha2)

@@ -34,7 +34,15 @@ def forward_backward_inconsistency(flow_fwd: torch.Tensor, flow_bwd: torch.Tenso
     KORNIA_CHECK(flow_fwd.shape == flow_bwd.shape,
                  f"forward_backward_inconsistency: flow_fwd {tuple(flow_fwd.shape)} and flow_bwd "
                  f"{tuple(flow_bwd.shape)} must have the same shape")
-    bwd_at_target, valid = warp_by_flow(flow_bwd, flow_fwd)
-    diff = flow_magnitude(flow_fwd + bwd_at_target)  # finite gradient at exactly consistent pixels: losses use it
-    valid = valid & torch.isfinite(diff)
+    bwd_at_target, inside = warp_by_flow(flow_bwd, flow_fwd)
+    return inconsistency_at(flow_fwd, bwd_at_target, inside)
+
+
+def inconsistency_at(flow_fwd: torch.Tensor, bwd_at_target: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """:func:`forward_backward_inconsistency` from a warp already done: ``bwd_at_target`` (B,2,H,W) the backward flow
+    sampled at ``x + F_fwd(x)`` and ``inside`` (B,1,H,W) bool, whether that target lies in image j
+    (:func:`dfvo.matching.flow_warp.warp_by_flow`). (B,1,H,W) pixels, ``+inf`` outside or where not finite; the
+    gradient stays finite at exactly consistent pixels, so losses can use it."""
+    diff = flow_magnitude(flow_fwd + bwd_at_target)
+    valid = inside & torch.isfinite(diff)
     return torch.where(valid, diff, torch.full_like(diff, float("inf")))

@@ -63,7 +63,6 @@ class ScaleMethod(StrEnum):
     iterative = "iterative"
 
 
-
 MAX_CAMERA_HEIGHT_M = 20.0  # a camera higher above the road than this is a unit mistake (165 cm given as 165)
 
 
@@ -76,6 +75,7 @@ def check_camera_height(height: float | None, setting: str) -> None:
     check(float(height) <= MAX_CAMERA_HEIGHT_M,
           f"{setting}={height}; expected metres (the camera's height above the road, at most {MAX_CAMERA_HEIGHT_M:g} "
           f"m); for {height} cm give {float(height) / 100:g}")
+
 
 @dataclass
 class ModelSelectionConfig:

@@ -136,16 +136,17 @@ class DFVODataModule(L.LightningDataModule):
         root = data_root(data)
         drives = list(data.drives) if data.drives else None
         stereo, skips, cache = self._need_stereo(), self.frame_skips, data.frame_cache_dir
+        hints = getattr(data, "depth_hints", False)  # data=kitti_raw only
         try:
             if skips == [1]:
                 return KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo, temporal=True,
                                         cache_dir=cache, held_out=data.held_out_drives,
-                                        hints=getattr(data, "depth_hints", False))
+                                        hints=hints)
             # KittiRawSnippets has no gap: its frame-level form (temporal=False) needs stereo=True, so snippets with
             # gaps read the right images too (dropped below for models without stereo)
             frames = KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=True, temporal=False,
                                       cache_dir=cache, held_out=data.held_out_drives,
-                                      hints=getattr(data, "depth_hints", False))
+                                      hints=hints)
         except (OSError, ValueError) as err:
             raise type(err)(f"data={self.name} (data.root={root}): {err}") from err
         sequences: dict[int, list[int]] = {}

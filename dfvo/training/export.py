@@ -27,7 +27,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 from typing import Any
-from weakref import proxy
 
 import lightning as L
 import torch
@@ -150,15 +149,11 @@ class LastCheckpoint(ModelCheckpoint):
     def _save_checkpoint(self, trainer: L.Trainer, filepath: str) -> None:
         path = Path(filepath)
         tmp = path.with_name(path.name + ".tmp")
-        trainer.save_checkpoint(str(tmp), self.save_weights_only)  # every rank takes part; global zero writes
+        super()._save_checkpoint(trainer, str(tmp))  # Lightning's save (every rank takes part; global zero writes)
         if trainer.is_global_zero:
             durable_replace(tmp, path, keep_previous=path.with_name(PREVIOUS_NAME))
         trainer.strategy.barrier("dfvo_last_checkpoint")
-        self._last_global_step_saved = trainer.global_step
         self._last_checkpoint_saved = filepath
-        if trainer.is_global_zero:
-            for logger in trainer.loggers:
-                logger.after_save_checkpoint(proxy(self))
         if self.weights_path is not None and trainer.is_global_zero:
             meta = weights_metadata({}, *self.size, global_step=trainer.global_step, epoch=trainer.current_epoch,
                                     source=filepath, identity=self.identity)

@@ -92,7 +92,7 @@ def _check_accelerator(t: TrainerConfig) -> None:
 
 
 def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, one_epoch_run: bool = False,
-                  stopper: StopOnSignal | None = None, extra_callbacks: list[Callback] | None = None) -> L.Trainer:
+                  stopper: StopOnSignal | None = None) -> L.Trainer:
     """Trainer with checkpoints (last + weights export, best), LR monitor, progress bar or console lines,
     TensorBoard, the NaN guard, validation at a ``max_steps`` stop, the channels-last layout and the stop on
     SIGTERM/SIGINT, as ``cfg.trainer`` says.
@@ -103,7 +103,6 @@ def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, o
             metric would never exist).
         one_epoch_run: the data's one epoch is the whole run (``data=flow_mix``): ``max_epochs`` is 1.
         stopper: the signal callback of the run (None: a new one, installed only as a callback).
-        extra_callbacks: more callbacks (e.g. ``benchmarks/train_step.py``'s step timer).
     """
     t: TrainerConfig = typed(cfg.trainer, TrainerConfig, "trainer")
     _check_accelerator(t)
@@ -140,7 +139,6 @@ def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, o
     if t.keep_weights_every_n_steps:
         callbacks.append(KeepWeights(run_dir, t.keep_weights_every_n_steps, size=(data.height, data.width),
                                      identity=identity))
-    callbacks.extend(extra_callbacks or [])
     logger: Any = False
     if t.logger:
         logger = TensorBoardLogger(save_dir=str(run_dir), name="tb", version="")
@@ -201,8 +199,7 @@ def run_folder(cfg: DictConfig) -> Path:
     return Path(str(cfg.runs_dir)).expanduser() / str(cfg.name)
 
 
-def _fit(cfg: DictConfig, stopper: StopOnSignal, extra_callbacks: list[Callback] | None
-         ) -> tuple[L.Trainer, L.LightningModule, Path]:
+def _fit(cfg: DictConfig, stopper: StopOnSignal) -> tuple[L.Trainer, L.LightningModule, Path]:
     if cfg.threads > 0:
         torch.set_num_threads(int(cfg.threads))
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
@@ -214,8 +211,7 @@ def _fit(cfg: DictConfig, stopper: StopOnSignal, extra_callbacks: list[Callback]
     datamodule = build_datamodule(cfg)  # checks the data fits the model (e.g. supervised flow needs true flow)
     module = build_module(cfg)
     trainer = build_trainer(cfg, run_dir, has_validation=datamodule.has_validation,
-                            one_epoch_run=getattr(datamodule, "one_epoch_run", False), stopper=stopper,
-                            extra_callbacks=extra_callbacks)
+                            one_epoch_run=getattr(datamodule, "one_epoch_run", False), stopper=stopper)
     if trainer.is_global_zero:
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     try:
@@ -230,13 +226,12 @@ def _fit(cfg: DictConfig, stopper: StopOnSignal, extra_callbacks: list[Callback]
     return trainer, module, run_dir
 
 
-def run_training(cfg: DictConfig, extra_callbacks: list[Callback] | None = None) -> dict[str, Any]:
+def run_training(cfg: DictConfig) -> dict[str, Any]:
     """Train as ``cfg`` says; return the run folder, checkpoint and weights paths, the step and the last metrics.
 
     Args:
         cfg: the composed training config (:class:`dfvo.training.config.TrainConfig`: groups ``model``, ``data``,
             ``trainer`` and ``name``, ``runs_dir``, ``seed``, ``ckpt_path``, ``resume``, ``threads``).
-        extra_callbacks: Lightning callbacks added to the run's own.
 
     Returns:
         ``run_dir``, ``last_ckpt``, ``best_ckpt`` (``last_ckpt`` when there is no best), ``weights`` (the exported
@@ -248,7 +243,7 @@ def run_training(cfg: DictConfig, extra_callbacks: list[Callback] | None = None)
     quiet_lightning_output()
     stopper = StopOnSignal()
     with stop_signals(stopper):
-        trainer, module, run_dir = _fit(cfg, stopper, extra_callbacks)
+        trainer, module, run_dir = _fit(cfg, stopper)
     last_cb = next(c for c in trainer.callbacks if isinstance(c, LastCheckpoint))
     best_cb = [c for c in trainer.callbacks if isinstance(c, ModelCheckpoint) and not isinstance(c, LastCheckpoint)]
     last = last_cb.best_model_path
