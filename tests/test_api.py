@@ -109,6 +109,38 @@ def test_frame_types_sizes_and_flags(world: SyntheticWorld, caplog: pytest.LogCa
 
 
 @needs_checkpoints
+@pytest.mark.parametrize("bad", [
+    lambda f: np.full(f.shape, np.nan, np.float32),  # a dropped camera buffer
+    lambda f: np.where(np.arange(f.shape[0])[:, None, None] < 10, np.inf, f / 255.0).astype(np.float32),
+])
+def test_frame_with_nan_pixels_is_flagged_and_the_next_frame_tracked(world: SyntheticWorld, bad,
+                                                                     caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 42: a frame with NaN or infinite pixels is not tracked (it raised a RuntimeError deep in the refinement,
+    and so did the next good frame): flagged ``bad_frame``, the previous step repeated, and the frames after it are
+    tracked against the last good one as when the bad frame was never given (same poses, indices counting it)."""
+    import dfvo
+
+    frames = uint8_frames(world, 5)
+    K = world.intrinsics().double().numpy()
+    ref = dfvo.Odometry.from_config(SMALL, K=K)
+    want = [ref.step(f) for f in (frames[0], frames[1], frames[3], frames[4])]
+    vo = dfvo.Odometry.from_config(SMALL, K=K)
+    got = [vo.step(frames[0]), vo.step(frames[1])]
+    with caplog.at_level("WARNING", logger="dfvo.api"):
+        coasted = vo.step(bad(frames[2]), 0.2)
+    got += [vo.step(frames[3]), vo.step(frames[4])]
+    assert coasted.index == 2 and coasted.timestamp == 0.2 and not coasted.ok
+    assert coasted.flags == ("constant_motion", "bad_frame") and "NaN or infinite" in coasted.reasons[0]
+    assert "frame 2:" in caplog.text and "the next frame is tracked against the last good one" in caplog.text
+    np.testing.assert_allclose(coasted.T_prev_cur, got[1].T_prev_cur, atol=1e-12)
+    np.testing.assert_allclose(coasted.T_w_c, got[1].T_w_c @ got[1].T_prev_cur, atol=1e-9)
+    assert np.linalg.eigvalsh(coasted.covariance).min() > 0
+    assert [r.index for r in got] == [0, 1, 3, 4]
+    for g, w in zip(got, want, strict=True):
+        assert g.tracker == w.tracker and np.abs(g.T_w_c - w.T_w_c).max() < 1e-9
+
+
+@needs_checkpoints
 def test_bad_input_is_one_line(world: SyntheticWorld) -> None:
     import dfvo
 

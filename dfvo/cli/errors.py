@@ -205,6 +205,17 @@ def _write_log(path: Path, message: str, exc: BaseException) -> Path | None:
     return path
 
 
+def _log_file_message(err: BaseException) -> str | None:
+    """The one line of a log file that cannot be opened (a read-only ``out_dir``, ``infer.log`` a folder): Python's
+    ``logging`` says only ``Unable to configure handler 'file'``, the cause names the file."""
+    cause = err.__cause__
+    if not (isinstance(err, ValueError) and str(err).startswith("Unable to configure handler")
+            and isinstance(cause, OSError) and cause.filename):
+        return None
+    return (f"cannot write the log file {cause.filename}: {cause.strerror or cause}; pass out_dir= a writable "
+            "folder")
+
+
 def run_reporting_errors(tool: str | None, hydra_main: Callable[[], object], log_name: str | None,
                          argv: Sequence[str] | None = None, exit_code: int = 1) -> None:
     """Run a ``@hydra.main`` function so that an expected error that escapes it (a config Hydra cannot compose, or a
@@ -242,6 +253,7 @@ def run_reporting_errors(tool: str | None, hydra_main: Callable[[], object], log
         sys.exit(1)
     except (HydraException, OmegaConfBaseException, *EXPECTED_ERRORS) as err:
         message = one_line(err) if isinstance(err, HydraException | OmegaConfBaseException) else str(err).strip()
+        message = _log_file_message(err) or message
         if isinstance(err, OverrideParseException):
             hint = quoting_hint(argv)
             message = f"cannot parse the command line: {hint}" if hint else message

@@ -11,6 +11,7 @@ typed schema is :class:`EvaluateConfig`. It creates no run folder and no log fil
 
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 from dataclasses import dataclass, field
@@ -23,8 +24,7 @@ from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 
 from dfvo.cli.errors import run_reporting_errors
-from dfvo.eval.alignment import AlignMode
-from dfvo.eval.report import evaluate_sequences, format_table, sequence_name
+from dfvo.eval.report import evaluate_sequences, format_table, infer_run_align, resolve_align, sequence_name
 from dfvo.io.json_io import write_json
 from dfvo.io.trajectory import FORMATS
 from dfvo.source_eval.config import DepthEvalConfig, FlowEvalConfig
@@ -54,7 +54,8 @@ class EvaluateConfig:
         pred_dir: predictions: a folder (all tasks), or for odometry one file.
         gt: one ground-truth trajectory file (odometry; instead of ``gt_dir``).
         pred: one predicted trajectory file (odometry; instead of ``pred_dir``).
-        align: ``6dof`` | ``7dof`` | ``scale`` | ``none``.
+        align: ``auto`` | ``6dof`` | ``7dof`` | ``scale`` | ``none``; ``auto``: the alignment ``infer.py`` used when
+            the predictions are an ``infer.py`` run's (its ``metrics.json`` beside them says which), else ``7dof``.
         format: ``auto`` | ``kitti`` | ``tum`` | ``euroc`` of the files (``auto``: by content).
         gt_format: format of the ground truth when it differs from ``format`` (None: ``format``).
         seqs: sequence name or list of names (None: every prediction with ground truth); ints get two digits.
@@ -74,7 +75,7 @@ class EvaluateConfig:
     pred_dir: str | None = None
     gt: str | None = None
     pred: str | None = None
-    align: str = "7dof"
+    align: str = "auto"
     format: str = "auto"
     gt_format: str | None = None
     seqs: Any = None
@@ -90,8 +91,16 @@ class EvaluateConfig:
 
 
 def register_schema() -> None:
-    """Register :class:`EvaluateConfig` as ``evaluate_schema`` in Hydra's ConfigStore (idempotent)."""
+    """Register :class:`EvaluateConfig` as ``evaluate_schema`` in Hydra's ConfigStore, and the ``dfvo_user``
+    resolver of its multirun folder (idempotent)."""
     ConfigStore.instance().store(name=SCHEMA_NAME, node=EvaluateConfig)
+    OmegaConf.register_new_resolver("dfvo_user", _user_tag, replace=True)
+
+
+def _user_tag() -> str:
+    """``uUID`` of this process's user: ``-m``'s folder in the shared temp folder is per user (another user's
+    ``dfvo-eval-multirun`` is not writable)."""
+    return f"u{os.getuid()}" if hasattr(os, "getuid") else "user"
 
 
 register_schema()
@@ -125,7 +134,7 @@ def odometry_options(cfg: DictConfig) -> dict:
         raise ValueError(f"max_time_diff={cfg.max_time_diff}: expected seconds >= 0")
     return {
         **paths,
-        "align": choice(AlignMode, cfg.align, "align").value,
+        "align": resolve_align(cfg.align, paths["pred_dir"]),
         "format": one_of(FORMATS, cfg.format, "format"),
         "gt_format": None if cfg.gt_format is None else one_of(FORMATS, cfg.gt_format, "gt_format"),
         "seqs": _names(cfg.seqs),
@@ -170,6 +179,10 @@ def _dispatch(cfg: DictConfig) -> dict:
         print(format_depth_table(result))
         return result
     options = odometry_options(cfg)
+    if str(cfg.align) == "auto":
+        used, path = infer_run_align(options["pred_dir"])
+        if used is not None:
+            print(f"align=auto: {used}, the alignment infer.py reported this run with ({path}); align= to choose")
     with warnings.catch_warnings():  # the scale warning is printed once, under the table
         warnings.simplefilter("ignore", UserWarning)
         result = {"task": "odometry", **evaluate_sequences(options.pop("gt_dir"), options.pop("pred_dir"),

@@ -3,13 +3,14 @@
 Convention:
     - ``read_image`` returns a (3,H,W) float32 tensor in [0,1], RGB. Grayscale files are replicated to three
       channels, alpha is dropped, palette images are expanded. 8-bit files are divided by 255, 16-bit
-      files by 65535.
+      files by 65535 (by 4095 when no value exceeds it: 12-bit data, :func:`sixteen_bit_to_unit`). ``decode_image`` does the same for a file held in memory (a ROS ``CompressedImage``).
     - Image folders are listed in natural order (``frame2`` before ``frame10``), PNG and JPEG only; hidden files
       (names starting with ``.``, such as macOS's ``._000001.png``) are skipped with one warning.
 """
 
 from __future__ import annotations
 
+import io
 import logging
 import re
 from pathlib import Path
@@ -101,13 +102,12 @@ def image_size(path: str | Path) -> tuple[int, int]:
         raise DatasetError(f"cannot read image {path}: expected a PNG or JPEG file ({err})") from err
 
 
-def _to_array(im: Image.Image) -> np.ndarray:
-    """Pillow image to an (H,W) or (H,W,3) float32 array in [0,1]."""
+def _to_array(im: Image.Image, source: str | Path = "") -> np.ndarray:
+    """Pillow image to an (H,W) or (H,W,3) float32 array in [0,1]; ``source`` names it in the notes of
+    :func:`_note_once` (16-bit files holding 12-bit data, EXIF orientations)."""
     mode = im.mode
-    if mode in ("I;16", "I;16B", "I;16L", "I;16N"):
-        return np.asarray(im, dtype=np.uint16) * np.float32(1.0 / 65535.0)
-    if mode == "I":  # 32-bit integer container; some Pillow versions decode 16-bit PNGs this way
-        return np.asarray(im, dtype=np.int32).astype(np.float32) * np.float32(1.0 / 65535.0)
+    if mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):  # "I": 32-bit container some Pillow versions use
+        return sixteen_bit_to_unit(np.asarray(im, dtype=np.int32 if mode == "I" else np.uint16), source)
     if mode == "F":
         return np.asarray(im, dtype=np.float32)
     if mode == "1":
@@ -115,6 +115,51 @@ def _to_array(im: Image.Image) -> np.ndarray:
     elif mode not in ("L", "RGB"):
         im = im.convert("RGB")  # RGBA, LA, P, CMYK, YCbCr ...
     return np.asarray(im, dtype=np.uint8) * np.float32(1.0 / 255.0)
+
+
+TWELVE_BIT_MAX = 4095
+
+
+def sixteen_bit_to_unit(raw: np.ndarray, source: str | Path = "") -> np.ndarray:
+    """16-bit pixel values (any integer array) to float32 in [0,1]: divided by 65535, or by 4095 when none exceeds
+    it (12-bit sensor data stored in 16 bits, which 65535 leaves nearly black; noted once per folder of
+    ``source``). The one home of the rule for files (:func:`read_image`), arrays (:func:`array_to_image`) and
+    bag messages."""
+    peak = int(raw.max()) if raw.size else 0
+    full = 65535.0
+    if 0 < peak <= TWELVE_BIT_MAX:
+        full = float(TWELVE_BIT_MAX)
+        _note_once(source, "12bit", "16-bit image with values up to %d: read as 12-bit data (divided by 4095, not "
+                   "65535, which left it nearly black)", peak)
+    return raw.astype(np.float32) * np.float32(1.0 / full)
+_NOTED: set[tuple[str, str]] = set()
+
+
+def _note_once(source: str | Path, kind: str, message: str, *args: object) -> None:
+    """Log ``message`` once per folder of ``source`` and ``kind`` (a sequence's frames share their cause)."""
+    key = (str(Path(source).parent) if source else "", kind)
+    if key in _NOTED:
+        return
+    _NOTED.add(key)
+    log.warning("%s: " + message + " (noted once for its folder)", source or "image", *args)
+
+
+def _check_orientation(im: Image.Image, source: str | Path) -> None:
+    """Name an EXIF orientation other than 1: viewers show such a frame rotated or mirrored, the frames are read as
+    stored (as videos are), so the intrinsics must be the stored pixels' and every frame must be stored alike."""
+    try:
+        orientation = int(im.getexif().get(EXIF_ORIENTATION, 1))
+    except (OSError, ValueError, TypeError, SyntaxError):
+        return
+    if orientation != 1:
+        _note_once(source, f"exif{orientation}", "EXIF orientation %d (%s in viewers): frames are read as stored, not "
+                   "turned; give the intrinsics of the stored pixels, and store every frame the same way up",
+                   orientation, EXIF_TURNS.get(orientation, "turned"))
+
+
+EXIF_ORIENTATION = 0x0112
+EXIF_TURNS = {2: "mirrored", 3: "rotated 180 degrees", 4: "flipped", 5: "transposed", 6: "rotated 90 degrees",
+              7: "transversed", 8: "rotated 270 degrees"}
 
 
 def _to_chw(arr: np.ndarray, size: tuple[int, int] | None) -> torch.Tensor:
@@ -158,12 +203,28 @@ def read_image(path: str | Path, *, size: tuple[int, int] | None = None,
     try:
         with Image.open(path) as im:
             im.load()  # decodes now, so truncated files fail here
-            arr = _to_array(im)
+            arr = _to_array(im, path)
+            _check_orientation(im, path)
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
         raise DatasetError(f"cannot read image {path}: expected a complete PNG or JPEG file ({err})") from err
     if expected_size is not None and tuple(arr.shape[:2]) != tuple(expected_size):
         raise DatasetError(f"image {path} is {arr.shape[0]}x{arr.shape[1]}, expected "
                            f"{expected_size[0]}x{expected_size[1]} (the size of the first frame)")
+    return _to_chw(arr, size)
+
+
+def decode_image(data: bytes, what: str, *, size: tuple[int, int] | None = None) -> torch.Tensor:
+    """A PNG or JPEG file held in memory (a ROS ``CompressedImage``) as :func:`read_image` reads the same file.
+
+    Raises:
+        DatasetError: not a complete PNG or JPEG (the message names ``what``).
+    """
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            im.load()
+            arr = _to_array(im)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        raise DatasetError(f"cannot decode {what}: expected a complete PNG or JPEG image ({err})") from err
     return _to_chw(arr, size)
 
 
@@ -183,10 +244,11 @@ def array_to_image(arr: np.ndarray, *, size: tuple[int, int] | None = None) -> t
     if a.dtype == np.uint8:
         a = a * np.float32(1.0 / 255.0)
     elif a.dtype == np.uint16:
-        a = a * np.float32(1.0 / 65535.0)
+        a = sixteen_bit_to_unit(a)
     elif np.issubdtype(a.dtype, np.floating):
         a = np.ascontiguousarray(a, dtype=np.float32)  # views such as frame[..., ::-1] have negative strides
-        peak = float(np.nanmax(a)) if a.size else 0.0
+        finite = a[np.isfinite(a)]  # NaN or infinite pixels are the caller's to flag (a dropped buffer)
+        peak = float(finite.max()) if finite.size else 0.0
         if peak > 1.5:
             raise ValueError(f"float image array with values up to {peak:g}; expected [0,1] (divide by 255, or pass "
                              "the uint8 array itself)")

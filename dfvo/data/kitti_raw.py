@@ -38,7 +38,15 @@ from dfvo.data.calibration import (
     stereo_transform,
 )
 from dfvo.data.frame_cache import DecodedFrames
-from dfvo.data.image_io import DatasetError, image_size, list_images, read_image, require_dir, require_file
+from dfvo.data.image_io import (
+    DatasetError,
+    DatasetNotFoundError,
+    image_size,
+    list_images,
+    read_image,
+    require_dir,
+    require_file,
+)
 from dfvo.data.stereo_hints import hint_depth
 from dfvo.data.transforms import check_working_size, resize_with_intrinsics
 
@@ -63,29 +71,36 @@ def _rot_z(a: np.ndarray) -> np.ndarray:
 
 
 def oxts_to_imu_poses(oxts: np.ndarray) -> np.ndarray:
-    """IMU poses from OXTS packets, relative to the first packet.
+    """IMU poses from OXTS packets, relative to the first packet with finite numbers.
 
     Args:
         oxts: (N,>=6) rows ``lat (deg), lon (deg), alt (m), roll, pitch, yaw (rad), ...``.
 
     Returns:
-        (N,4,4) float64 ``T_imu0_imui`` (first = identity); the world frame is east-north-up before the
-        normalisation by the first pose.
+        (N,4,4) float64 ``T_imu0_imui`` (the first finite packet's = identity); the world frame is east-north-up
+        before the normalisation by that pose. A packet with a NaN or infinity among its first six numbers gives a
+        NaN row (a frame without ground truth).
     """
     if oxts.ndim != 2 or oxts.shape[1] < 6:
         raise ValueError(f"oxts must be (N, >=6) [lat, lon, alt, roll, pitch, yaw, ...], got {oxts.shape}")
+    known = np.isfinite(oxts[:, :6]).all(axis=1)
+    if not known.any():
+        return np.full((len(oxts), 4, 4), np.nan)
+    first = int(np.argmax(known))
     lat, lon, alt = oxts[:, 0], oxts[:, 1], oxts[:, 2]
-    scale = np.cos(np.deg2rad(lat[0]))
+    scale = np.cos(np.deg2rad(lat[first]))
     T = np.tile(np.eye(4), (len(oxts), 1, 1))
     T[:, 0, 3] = scale * np.deg2rad(lon) * EARTH_RADIUS_M
     T[:, 1, 3] = scale * EARTH_RADIUS_M * np.log(np.tan(np.deg2rad(90.0 + lat) / 2.0))
     T[:, 2, 3] = alt
     T[:, :3, :3] = _rot_z(oxts[:, 5]) @ _rot_y(oxts[:, 4]) @ _rot_x(oxts[:, 3])
-    return np.linalg.inv(T[0]) @ T
+    T[~known] = np.nan
+    return np.linalg.inv(T[first]) @ T
 
 
 def read_oxts_folder(folder: str | Path) -> np.ndarray:
-    """All packets of an ``oxts/data`` folder (one ``*.txt`` per frame, sorted by name) as (N,30) float64."""
+    """All packets of an ``oxts/data`` folder (one ``*.txt`` per frame, sorted by name) as (N,30) float64; packets
+    with non-finite numbers are kept (their frames get no ground truth) and named in one warning line."""
     folder = require_dir(folder, "KITTI raw oxts")
     files = sorted(folder.glob("*.txt"))
     if not files:
@@ -100,7 +115,30 @@ def read_oxts_folder(folder: str | Path) -> np.ndarray:
             raise DatasetError(f"oxts packet {f}: expected at least 6 numbers (lat lon alt roll pitch yaw), "
                                f"found {len(vals)}")
         rows.append(vals[:30] + [0.0] * (30 - min(len(vals), 30)))
-    return np.asarray(rows, dtype=np.float64)
+    packets = np.asarray(rows, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(packets[:, :6]).all(axis=1))
+    if len(bad):
+        log.warning("oxts packet %s%s: NaN or infinite position or attitude; %s without ground truth", files[bad[0]],
+                    f" and {len(bad) - 1} more" if len(bad) > 1 else "",
+                    "its frame is evaluated" if len(bad) == 1 else f"these {len(bad)} frames are evaluated")
+    return packets
+
+
+def raw_timestamps(path: Path, count: int) -> np.ndarray | None:
+    """(N,) float64 seconds (UTC, since 1970) of a raw drive's ``timestamps.txt`` (``2011-09-26 13:04:32.345808896``
+    a line); None (with a warning when the file exists) when it is missing, unreadable or not one line per image."""
+    if not path.is_file():
+        return None
+    lines = [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    try:
+        ns = np.array([np.datetime64(line.replace(" ", "T"), "ns") for line in lines]).astype(np.int64)
+    except ValueError as err:
+        log.warning("%s: expected one date and time a line (%s); the frames run without timestamps", path, err)
+        return None
+    if len(ns) != count:
+        log.warning("%s has %d timestamps for %d images; the frames run without timestamps", path, len(ns), count)
+        return None
+    return ns / 1e9
 
 
 def imu_to_camera(date_dir: str | Path, camera: int = 2) -> np.ndarray:
@@ -114,13 +152,18 @@ def imu_to_camera(date_dir: str | Path, camera: int = 2) -> np.ndarray:
 
 
 def oxts_camera_poses(drive_dir: str | Path, camera: int = 2) -> np.ndarray | None:
-    """Ground-truth ``T_w_c`` (N,4,4) of a raw drive's rectified camera, first = identity; None without oxts."""
+    """Ground-truth ``T_w_c`` (N,4,4) of a raw drive's rectified camera, first = identity; None without oxts, or
+    (with a warning) without the IMU/velodyne calibration files that move the oxts poses to the camera."""
     drive_dir = Path(drive_dir)
     oxts_dir = drive_dir / "oxts" / "data"
     if not oxts_dir.is_dir():
         return None
     T_imu0_imu = oxts_to_imu_poses(read_oxts_folder(oxts_dir))
-    T_cam_imu = imu_to_camera(drive_dir.parent, camera)
+    try:
+        T_cam_imu = imu_to_camera(drive_dir.parent, camera)
+    except DatasetNotFoundError as err:  # the frames can still be tracked; only the ground truth needs it
+        log.warning("%s: the oxts poses cannot be moved to the camera, so %s has no ground truth", err, drive_dir.name)
+        return None
     return T_cam_imu @ T_imu0_imu @ np.linalg.inv(T_cam_imu)
 
 
@@ -187,10 +230,10 @@ class _Drive:
                 raise DatasetError(f"{drive_dir}: image_02/data has {len(self.left)} images but image_03/data has "
                                    f"{len(self.right)}; expected equal counts")
         cam_file = require_file(drive_dir.parent / "calib_cam_to_cam.txt", "KITTI raw camera calibration")
-        proj = read_raw_projections(cam_file, (2, 3))
+        proj = read_raw_projections(cam_file, (2, 3) if stereo else (2,))  # a monocular run needs no P_rect_03
         self.native_size = image_size(self.left[0])
         K = torch.as_tensor(checked_intrinsics(cam_file, "P_rect_02", self.native_size), dtype=torch.float32)
-        self.baseline = stereo_baseline(proj[2], proj[3])  # after the check: it divides by fx
+        self.baseline = stereo_baseline(proj[2], proj[3]) if stereo else None  # after the check: it divides by fx
         self.fx_native = float(K[0, 0])
         self.size = size if size is not None else self.native_size
         _, self.K = resize_with_intrinsics(torch.zeros(1, *self.native_size), K, *self.size)
@@ -199,6 +242,7 @@ class _Drive:
             raise DatasetError(f"{drive_dir}: oxts/data has {len(poses)} packets but image_02/data has "
                                f"{len(self.left)} images; expected one packet per image")
         self.poses = poses
+        self.timestamps = raw_timestamps(drive_dir / "image_02" / "timestamps.txt", len(self.left))
         self.cached: dict[str, DecodedFrames] | None = None
         self.hints: DecodedFrames | None = None
 

@@ -71,6 +71,7 @@ class VideoReader:
         container = self._open_container()
         try:
             stream = container.streams.video[0]
+            declared = int(stream.frames or 0)  # the header's frame count (0: not stated)
             self.time_base = stream.time_base
             self.size = (int(stream.codec_context.height), int(stream.codec_context.width))
             pts = []
@@ -89,6 +90,13 @@ class VideoReader:
             raise DatasetError(f"video {self.path} holds no video frames")
         self.pts = np.unique(np.asarray(pts, dtype=np.int64))
         self.num_frames = len(self.pts)
+        if declared and declared != len(pts):  # what the container says is checked before it is trusted
+            log.warning("video %s: its header declares %d frames but %d are in the file (%s); the %d found are "
+                        "used", self.path, declared, len(pts),
+                        "truncated or damaged?" if len(pts) < declared else "an edited or damaged header?", len(pts))
+        if len(pts) != self.num_frames:
+            log.warning("video %s: %d frames share a timestamp with another; each timestamp is used once",
+                        self.path, len(pts) - self.num_frames)
         self.timestamps = self.pts * float(self.time_base)
         self._index = {int(p): i for i, p in enumerate(self.pts)}
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()

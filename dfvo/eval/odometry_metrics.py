@@ -121,10 +121,15 @@ def aligned_prediction(gt: np.ndarray, pred: np.ndarray, align: str = "7dof",
                        valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """The trajectories as the metrics see them: ``(gt, pred)`` re-based to their first valid frame, ``pred``
     aligned onto ``gt`` (alignment estimated on the valid frames), and ``{"scale", "rotation", "translation"}``.
-    All arrays ``(N,4,4)``."""
-    gt, pred, valid = _check_pair(gt, pred, valid)
+    All arrays ``(N,4,4)``. Frames whose ground truth is NaN (none) are left out of the alignment and stay NaN in the
+    returned ``gt``."""
+    gt = np.asarray(gt, np.float64)
+    gt_known = np.isfinite(gt).all(axis=(1, 2)) if gt.ndim == 3 else np.ones(len(gt), bool)
+    valid = (np.ones(len(gt), bool) if valid is None else np.asarray(valid, bool)) & gt_known
+    gt, pred, valid = _check_pair(np.where(gt_known[:, None, None], gt, np.eye(4)), pred, valid)
     first = int(np.argmax(valid))
     gt, pred = np.linalg.inv(gt[first]) @ gt, np.linalg.inv(pred[first]) @ pred
+    gt[~gt_known] = np.nan
     params = dict(zip(("scale", "rotation", "translation"), estimate_alignment(gt[valid], pred[valid], align)))
     return gt, pred, apply_alignment(pred, params["scale"], params["rotation"], params["translation"]), params
 

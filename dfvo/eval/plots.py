@@ -248,8 +248,12 @@ def frames_figure(rows: Sequence[dict[str, Any]], pred: np.ndarray | None = None
         raise ValueError("plot_frames: no per-frame rows (frames.csv is empty)")
     frames = np.array([int(_num(r.get("frame", i))) for i, r in enumerate(rows)])
     trackers = [str(r.get("tracker") or "") for r in rows]
-    fallback = np.array([bool(str(r.get("fallback_reason") or "").strip() not in ("", "None")) or
-                         _flag(r.get("constant_motion")) or _flag(r.get("pnp_failed")) for r in rows])
+    # a fallback is what summary.json counts: constant motion, or a PnP that failed; a frame whose E was set aside
+    # for PnP (model selection, a gate) has a reason too, listed in the caption, but its tracker measured the pose
+    noted = np.array([str(r.get("fallback_reason") or "").strip() not in ("", "None") for r in rows])
+    constant = np.array([_flag(r.get("constant_motion")) or str(r.get("tracker")) == "constant_motion" for r in rows])
+    pnp_failed = np.array([_flag(r.get("pnp_failed")) for r in rows])
+    fallback = constant | pnp_failed
     fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True, gridspec_kw={"height_ratios": [3, 3, 2.2, 0.8]})
     ax_t, ax_r, ax_n, ax_k = axes
     for ax, gid in zip(axes, ("translation", "rotation", "correspondences", "tracker"), strict=True):
@@ -304,13 +308,14 @@ def frames_figure(rows: Sequence[dict[str, Any]], pred: np.ndarray | None = None
     label, font = _drawable(title)
     ax_t.set_title(label, **font)
     count = Counter(t for t in trackers if t)
-    reasons = Counter(str(r.get("fallback_reason")).strip() for r, fb in zip(rows, fallback, strict=True)
-                      if fb and str(r.get("fallback_reason") or "").strip() not in ("", "None"))
+    reasons = Counter(str(r.get("fallback_reason")).strip() for r, on in zip(rows, noted, strict=True) if on)
+    tracked = int((frames > 0).sum())
     text = "trackers: " + ", ".join(f"{n} {c}" for n, c in count.most_common())
-    text += f" | fallback frames: {int(fallback.sum())} of {len(rows)}"
+    text += f" | fallback frames (as summary.json counts them): constant motion {int(constant.sum())} of {tracked}"
+    text += f", PnP failed {int(pnp_failed.sum())}" if pnp_failed.any() else ""
     lines = textwrap.wrap(text, 130)
     if reasons:  # a legend table: one whole reason per line (wrapped, never cut), its frame count first
-        lines.append("fallback reasons (frames with that reason):")
+        lines.append("reasons noted, fallbacks and a tracker set aside for another (frames with that reason):")
         for reason, c in reasons.most_common(_MAX_REASONS):
             lines += textwrap.wrap(reason, 130, initial_indent=f"{c:>5} x  ", subsequent_indent=" " * 9)
         if len(reasons) > _MAX_REASONS:

@@ -11,10 +11,12 @@ Convention:
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
+from dfvo.eval.alignment import AlignMode
 from dfvo.eval.odometry_metrics import aligned_prediction, evaluate_trajectory
 from dfvo.io.association import associate_trajectories
 from dfvo.io.trajectory import (
@@ -25,6 +27,7 @@ from dfvo.io.trajectory import (
     read_trajectory,
     resolve_trajectory_file,
 )
+from dfvo.validation import choice
 
 SUMMARY_KEYS = ("t_err_pct", "r_err_deg_per_100m", "ate_m", "rpe_m", "rpe_deg")
 TRAJECTORY_SUFFIXES = (".txt", ".tum", ".csv")
@@ -111,7 +114,28 @@ def read_pair(gt_file: Path, pred_file: Path, format: str = "auto", gt_format: s
     return gt, pred, gt_fmt, pred_fmt
 
 
-def evaluate_sequences(gt_dir: str | Path, pred_dir: str | Path, seqs: list[str] | None = None, align: str = "7dof",
+def infer_run_align(pred: str | Path) -> tuple[str | None, Path]:
+    """``(align, metrics.json)``: the alignment ``infer.py`` wrote into the ``metrics.json`` beside the predictions
+    ``pred`` (a file or a folder), None when there is none (or it is not readable)."""
+    folder = Path(pred) if Path(pred).is_dir() else Path(pred).parent
+    path = folder / "metrics.json"
+    try:
+        return choice(AlignMode, json.loads(path.read_text()).get("align"), "align").value, path
+    except (OSError, ValueError, AttributeError, TypeError):
+        return None, path
+
+
+def resolve_align(align: str, pred: str | Path) -> str:
+    """The alignment mode of ``align`` (:class:`~dfvo.eval.alignment.AlignMode` or ``auto``) for the predictions at
+    ``pred``: ``auto`` is the alignment ``infer.py`` used when they are an ``infer.py`` run's
+    (:func:`infer_run_align`), so that a run evaluated again reads as its own report; else ``7dof``, the usual
+    alignment of a monocular trajectory."""
+    if str(align) != "auto":
+        return choice(AlignMode, align, "align").value
+    return infer_run_align(pred)[0] or AlignMode.sim3.value
+
+
+def evaluate_sequences(gt_dir: str | Path, pred_dir: str | Path, seqs: list[str] | None = None, align: str = "auto",
                        exclude: list[str] | None = None, plot_dir: str | Path | None = None, *, format: str = "auto",
                        gt_format: str | None = None, allow_prefix: bool = False, max_time_diff: float = 0.01,
                        time_offset: float = 0.0, gt_times: str | Path | None = None) -> dict:
@@ -121,7 +145,7 @@ def evaluate_sequences(gt_dir: str | Path, pred_dir: str | Path, seqs: list[str]
         gt_dir: folder of ground-truth files (or one file / dataset folder when ``pred_dir`` is a file).
         pred_dir: folder of predicted files, e.g. ``infer.py``'s ``out_dir`` (or one file).
         seqs: sequence names such as ``["09", "10"]``; None = every trajectory file of ``pred_dir`` with GT.
-        align: ``6dof`` | ``7dof`` | ``scale`` | ``none``.
+        align: ``auto`` | ``6dof`` | ``7dof`` | ``scale`` | ``none`` (``auto``: :func:`resolve_align`).
         exclude: sequences left out of the average (e.g. ``["01"]`` as in the DF-VO paper).
         plot_dir: when set, writes ``<seq>_trajectory.png`` and ``<seq>_segment_errors.png`` there.
         format: ``auto`` | ``kitti`` | ``tum`` | ``euroc`` for the predictions (and the GT unless ``gt_format``).
@@ -135,6 +159,7 @@ def evaluate_sequences(gt_dir: str | Path, pred_dir: str | Path, seqs: list[str]
         ``{"align", "sequences": {seq: evaluate_trajectory dict + "gt_file", "pred_file", "gt_format",
         "pred_format", "association"}, "average": {..., "sequences": [...]}}``.
     """
+    align = resolve_align(align, pred_dir)
     pairs = find_sequences(gt_dir, pred_dir, [sequence_name(s) for s in seqs] if seqs is not None else None)
     results = {}
     for seq, (gt_file, pred_file) in pairs.items():

@@ -21,6 +21,9 @@ Convention:
       frame (the world; x right, y down, z forward), ``T_prev_cur`` (4,4) the step from the previous frame.
       ``covariance`` (6,6) is that of the step's error ``[phi (rad), dt (m)]`` with ``R_true = exp([phi]) R`` and
       ``t_true = t + dt`` in the previous camera's axes (:mod:`dfvo.tracking.covariance`); frame 0 has zeros.
+    - A frame with NaN or infinite pixels (a dropped camera buffer) is not tracked: its result repeats the previous
+      step (``tracker="constant_motion"``, flag ``bad_frame``, the reason in ``reasons``) and the next frame is
+      tracked against the last good one; ``StepResult.index`` counts every frame given.
 
 Importing this module loads torch, kornia and Hydra; ``import dfvo`` alone does not (``dfvo.Odometry`` is imported on
 first use).
@@ -47,6 +50,7 @@ from dfvo.inference.frames import working_hw
 from dfvo.inference.loop import FrameStepper
 from dfvo.inference.timing import StageTimer
 from dfvo.tracking import VisualOdometry
+from dfvo.tracking.covariance import constant_motion_covariance
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 
 __all__ = ["Odometry", "StepResult", "SIZE_CHANGE"]
@@ -65,7 +69,8 @@ class StepResult:
         covariance: (6,6) of the step's error, order ``[rx, ry, rz, tx, ty, tz]`` (rad, m).
         tracker: ``init`` (frame 0), ``E`` (essential matrix + scale), ``PnP`` or ``constant_motion`` (no tracker
             gave a pose: the previous step repeated, with a large covariance).
-        flags: what happened besides the normal path, among ``constant_motion``, ``selection_failed``,
+        flags: what happened besides the normal path, among ``constant_motion``, ``bad_frame`` (NaN or infinite
+            pixels: not tracked), ``selection_failed``,
             ``pnp_failed``, ``gate_rejected``, ``scale_predicted`` (the scale filter's prediction was used),
             ``resized`` (a frame of another size than the first).
         reasons: the tracker's reasons for each fallback or flag (empty on a normal frame).
@@ -123,6 +128,8 @@ class Odometry:
         self._prep: Any = None
         self.native_size: tuple[int, int] | None = None
         self._noted_resize = False
+        self._skipped = 0  # frames given but not tracked (NaN pixels): StepResult.index counts them
+        self._coasting = 0  # such frames since the last tracked one
         self.last_record: Any = None  # the last frame's FrameRecord (flows, depths, matches; None for frame 0)
         self.last_image: torch.Tensor | None = None  # the last frame at the working size (3,H,W)
 
@@ -148,19 +155,45 @@ class Odometry:
         """Start a new trajectory: the next frame is frame 0 (intrinsics and working size are kept)."""
         if self._stepper is not None:
             self._stepper.reset()
+        self._skipped = self._coasting = 0
 
     # ------------------------------------------------------------------------------------------ frames
     def step(self, image: Any, timestamp: float | None = None) -> StepResult:
         """Track one frame (numpy array or tensor, see the module docstring) taken at ``timestamp`` seconds."""
         tensor, resized = self._prepare(image)
+        unusable = ~torch.isfinite(tensor)
+        if bool(unusable.any()):
+            return self._coast(timestamp, float(unusable.float().mean()), resized)
         record = self._stepper.push(tensor)
+        self._coasting = 0
         self.last_record, self.last_image = record, tensor
         if record is None:
-            return StepResult(0, timestamp, np.eye(4), np.eye(4), np.zeros((6, 6)), TrackerUsed.init.value,
+            return StepResult(self._skipped, timestamp, np.eye(4), np.eye(4), np.zeros((6, 6)), TrackerUsed.init.value,
                               ("resized",) if resized else (), (),
                               FrameDiagnostics(frame=0, tracker=TrackerUsed.init))
         record.timestamp = timestamp
-        return _result(record, timestamp, resized)
+        return _result(record, timestamp, resized, self._skipped)
+
+    def _coast(self, timestamp: float | None, fraction: float, resized: bool) -> StepResult:
+        """The result of a frame with NaN or infinite pixels (a dropped camera buffer): not tracked, the previous
+        step repeated from the last tracked frame (flag ``bad_frame``); the tracker's state is left as it was, so the
+        next frame is tracked against the last good one."""
+        index = self._stepper.index + 1 + self._skipped
+        self._skipped += 1
+        self._coasting += 1
+        reason = (f"frame {index}: {fraction:.0%} of its pixels are NaN or infinite (a dropped camera buffer?); not "
+                  "tracked, the previous step repeated")
+        log.warning("%s; the next frame is tracked against the last good one", reason)
+        flags = ("constant_motion", "bad_frame") + (("resized",) if resized else ())
+        if self._stepper.prev is None:  # no tracked frame yet: the trajectory starts at the next good one
+            return StepResult(index, timestamp, np.eye(4), np.eye(4), np.zeros((6, 6)),
+                              TrackerUsed.constant_motion.value, flags, (reason,))
+        vo = self.vo
+        step = vo.last_motion.clone()
+        cov = constant_motion_covariance(step, self.cfg.tracker.covariance).numpy()
+        T_w_c = vo.T_w @ torch.linalg.matrix_power(step, self._coasting)  # the steps since the last tracked frame
+        return StepResult(index, timestamp, T_w_c.double().numpy(), step.double().numpy(), cov,
+                          TrackerUsed.constant_motion.value, flags, (reason,))
 
     def _prepare(self, image: Any) -> tuple[torch.Tensor, bool]:
         """(3,H,W) working-size float frame of ``image`` and whether it had to be resized to the first size."""
@@ -233,7 +266,7 @@ def _native_size(image: Any) -> tuple[int, int]:
     return int(shape[0]), int(shape[1])
 
 
-def _result(record: Any, timestamp: float | None, resized: bool) -> StepResult:
+def _result(record: Any, timestamp: float | None, resized: bool, skipped: int = 0) -> StepResult:
     res = record.result
     diag: FrameDiagnostics = res.diagnostics
     flags = [name for name, on in (("constant_motion", diag.constant_motion),
@@ -243,6 +276,6 @@ def _result(record: Any, timestamp: float | None, resized: bool) -> StepResult:
                                    ("resized", resized)) if on]
     reasons = tuple(r for r in (diag.fallback_reason or "").split("; ") if r)
     cov = res.covariance.detach().cpu().numpy() if res.covariance is not None else np.full((6, 6), np.nan)
-    return StepResult(record.index, timestamp, res.T_w_cur.detach().cpu().double().numpy(),
+    return StepResult(record.index + skipped, timestamp, res.T_w_cur.detach().cpu().double().numpy(),
                       res.T_prev_cur.detach().cpu().double().numpy(), cov,
                       diag.tracker.value if diag.tracker is not None else "none", tuple(flags), reasons, diag)

@@ -6,8 +6,10 @@ run (:mod:`dfvo.inference.live`) and the Python API (:mod:`dfvo.inference.api`) 
 
 from __future__ import annotations
 
+import errno
 import logging
-import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -17,6 +19,7 @@ import torch
 
 from dfvo.inference.config import InferConfig, ViewerKind
 from dfvo.inference.loop import FrameRecord
+from dfvo.inference.outputs import is_bag, remove_output, writing
 from dfvo.inference.rerun_observer import RerunObserver
 from dfvo.inference.tb_logging import TensorboardObserver
 from dfvo.sources import NetworkFlow, build_depth_source, build_flow_source, check_sources
@@ -100,19 +103,36 @@ class BagObserver:
         from dfvo.io.rosbag import OdometryBagWriter, import_rosbags  # deferred: rosbags is an optional extra
 
         import_rosbags()  # a missing extra fails before the old bag is removed
-        path = out / "bag"
-        if path.is_dir() and ((path / "metadata.yaml").exists() or any(path.glob("*.db3"))):
-            log.info("output.rosbag: replacing the bag of an earlier run in %s", path)
-            shutil.rmtree(path)
-        self.writer = OdometryBagWriter(path, cfg.output.ros_world_frame, cfg.output.ros_camera_frame, ground_truth)
-        self.writer.write(0, np.eye(4), None, first_stamp)
+        self.path = out / "bag"
+        if is_bag(self.path):
+            log.info("output.rosbag: replacing the bag of an earlier run in %s", self.path)
+            remove_output(self.path)
+        with self._writing():
+            self.writer = OdometryBagWriter(self.path, cfg.output.ros_world_frame, cfg.output.ros_camera_frame,
+                                            ground_truth, str(cfg.output.rosbag_storage))
+            self.writer.write(0, np.eye(4), None, first_stamp)
 
     def on_frame(self, record: FrameRecord) -> None:
-        self.writer.write(record.index, record.result.T_w_cur.detach().cpu().double().numpy(),
-                          record.result.covariance, record.timestamp)
+        with self._writing():
+            self.writer.write(record.index, record.result.T_w_cur.detach().cpu().double().numpy(),
+                              record.result.covariance, record.timestamp)
 
     def close(self) -> None:
-        self.writer.close()
+        with self._writing():
+            self.writer.close()
+
+    @contextmanager
+    def _writing(self) -> Iterator[None]:
+        """The bag's write errors as :class:`~dfvo.inference.outputs.OutputWriteError` naming the bag: sqlite3
+        reports a full disk as ``sqlite3.OperationalError: database or disk is full``, not as an ``OSError``."""
+        import sqlite3
+
+        with writing(self.path):
+            try:
+                yield
+            except sqlite3.Error as err:
+                full = "full" in str(err)
+                raise OSError(errno.ENOSPC if full else errno.EIO, f"{err} (sqlite3)") from err
 
 
 

@@ -30,8 +30,9 @@ from dfvo.validation import check, choice, typed
 
 __all__ = ["PoseFormat", "OverlapMode", "ViewerKind", "ImgResConfig", "DataConfig", "SyntheticDataConfig",
            "KittiOdomDataConfig", "KittiRawDataConfig", "FolderDataConfig", "EurocDataConfig", "TumDataConfig",
-           "VideoDataConfig", "StreamDataConfig", "DATA_SCHEMAS", "TensorboardConfig", "ViewerConfig", "OutputConfig",
-           "InferConfig", "register_configs", "typed", "compose_infer_config"]
+           "VideoDataConfig", "RosbagDataConfig", "StreamDataConfig", "DATA_SCHEMAS", "TensorboardConfig",
+           "ViewerConfig", "RosbagStorage", "OutputConfig", "InferConfig", "register_configs", "typed",
+           "compose_infer_config"]
 # typed: dfvo.validation.typed, re-exported (scripts import it from here)
 
 
@@ -174,6 +175,40 @@ class VideoDataConfig(OwnVideoDataConfig):
 
 
 @dataclass
+class RosbagDataConfig(OwnVideoDataConfig):
+    """A ROS 1 ``.bag`` or a ROS 2 bag (its folder, or one ``.db3`` / ``.mcap`` file) read with the pure-Python
+    ``rosbags`` library (``pip install "dfvo[ros]"``; :mod:`dfvo.data.rosbag_input`); frames in header-stamp order,
+    timestamps from the header stamps.
+
+    Attributes:
+        path: the bag. topic: the image topic (``sensor_msgs/Image`` or ``CompressedImage``; null: the bag's only
+            one).
+        camera_info_topic: the ``sensor_msgs/CameraInfo`` giving the intrinsics and distortion (null: the one beside
+            the image topic, else the bag's only one); ``fx, fy, cx, cy, dist`` given replace its values.
+        gt_topic: ground truth in the bag (``geometry_msgs/PoseStamped``, ``nav_msgs/Odometry``,
+            ``geometry_msgs/TransformStamped``, ``tf2_msgs/TFMessage``; null: none), associated by nearest stamp
+            within ``gt_tolerance`` seconds.
+        gt_parent_frame, gt_child_frame: the transform of a TF topic to use (null: the topic's only one);
+            ``gt_child_frame`` also names the body whose pose a ``PoseStamped`` gives (null: the camera's).
+        gt_camera_transform: the camera's pose in the ground truth's body frame, ``[x, y, z, qx, qy, qz, qw]``
+            (metres, ROS order) or 16 numbers (4x4, row by row); null: from the bag's ``/tf_static``.
+    """
+
+    kind: str = "rosbag"
+    path: str | None = None
+    topic: str | None = None
+    camera_info_topic: str | None = None
+    gt_topic: str | None = None
+    gt_parent_frame: str | None = None
+    gt_child_frame: str | None = None
+    gt_camera_transform: list[float] | None = None
+
+    def __post_init__(self) -> None:
+        check(not (self.gt and self.gt_topic), f"data.gt={self.gt} and data.gt_topic={self.gt_topic}: give one "
+              "ground truth (a file, or a topic of the bag)")
+
+
+@dataclass
 class EurocDataConfig(DataConfig):
     """EuRoC MAV: ``root`` the sequence folder (or its ``mav0/``); intrinsics, distortion and the body→camera
     extrinsic ``T_BS`` from ``CAMERA/sensor.yaml``, timestamps from ``CAMERA/data.csv``, ground truth from
@@ -239,6 +274,7 @@ DATA_SCHEMAS: dict[str, type[DataConfig]] = {
     "euroc": EurocDataConfig,
     "tum": TumDataConfig,
     "video": VideoDataConfig,
+    "rosbag": RosbagDataConfig,
     "stream": StreamDataConfig,
 }
 
@@ -259,6 +295,14 @@ class ViewerConfig:
     spawn: bool = False
 
 
+class RosbagStorage(StrEnum):
+    """Storage of the output bag (``output.rosbag_storage``): ``sqlite3`` (``bag.db3``, what ``ros2 bag`` reads
+    without plugins) or ``mcap`` (``bag.mcap``, which Foxglove opens directly)."""
+
+    sqlite3 = "sqlite3"
+    mcap = "mcap"
+
+
 @dataclass
 class OutputConfig:
     """Optional outputs of a run besides the trajectory, ``frames.csv`` and the summary.
@@ -267,10 +311,12 @@ class OutputConfig:
         rosbag: write ``OUT/bag/``, a ROS 2 bag (:mod:`dfvo.io.rosbag`, ``pip install "dfvo[ros]"``) with
             ``nav_msgs/msg/Odometry`` (pose, twist, covariances), ``tf2_msgs/msg/TFMessage`` and the ground truth,
             as frames are produced.
+        rosbag_storage: the bag's storage (:class:`RosbagStorage`: ``sqlite3`` or ``mcap``).
         ros_world_frame, ros_camera_frame: the frame ids of the messages (the world is the first camera's frame).
     """
 
     rosbag: bool = False
+    rosbag_storage: RosbagStorage = RosbagStorage.sqlite3
     ros_world_frame: str = "odom"
     ros_camera_frame: str = "camera"
 

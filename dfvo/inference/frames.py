@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -25,6 +26,8 @@ from dfvo.data.euroc import open_euroc
 from dfvo.data.image_folder import ImageFolder
 from dfvo.data.kitti_odometry import KittiOdometry, selects_kitti_odometry
 from dfvo.data.kitti_raw import KittiRawSnippets
+from dfvo.data.pose_check import checked_poses
+from dfvo.data.rosbag_input import open_rosbag
 from dfvo.data.sequence import FrameSequence
 from dfvo.data.transforms import resize_image
 from dfvo.data.tum_rgbd import open_tum
@@ -42,6 +45,7 @@ log = logging.getLogger("dfvo.data")
 # dataset kind -> environment variable that gives its root once for all commands
 DATA_ROOT_ENV = {"kitti_odom": "DFVO_KITTI_ODOM_ROOT", "kitti_raw": "DFVO_KITTI_RAW_ROOT"}
 SYNTHETIC_FRAME_PERIOD_S = 0.1  # the synthetic camera runs at KITTI's 10 Hz
+MIN_WORKING_SIDE = 64  # pixels: a working size below this cannot be tracked (6-pixel grid cells, 2x2 network maps)
 
 
 def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
@@ -88,6 +92,19 @@ def resolve_data(data: Any, seq: str | int | None) -> tuple[Any, str | None]:
 def working_hw(img_res: Any, native_hw: tuple[int, int]) -> tuple[int, int]:
     """The working (height, width) that ``img_res`` (see :class:`dfvo.inference.config.ImgResConfig`) gives frames of
     ``native_hw``."""
+    hw = _working_hw(img_res, native_hw)
+    if min(hw) < MIN_WORKING_SIDE:
+        h0, w0 = native_hw
+        need = math.ceil(MIN_WORKING_SIDE * w0 / min(h0, w0))
+        given = ", ".join(f"img_res.{k}={getattr(img_res, k)}" for k in ("width", "height", "scale")
+                          if getattr(img_res, k, None) is not None)
+        raise ValueError(f"{given or 'img_res'}: frames of {w0}x{h0} would be tracked at {hw[1]}x{hw[0]}; expected at "
+                         f"least {MIN_WORKING_SIDE} pixels on each side (the 10x10 correspondence grid, the networks' "
+                         f"32-pixel steps): give img_res.width={need} or more (or a larger img_res.scale)")
+    return hw
+
+
+def _working_hw(img_res: Any, native_hw: tuple[int, int]) -> tuple[int, int]:
     h, w, scale = img_res.height, img_res.width, getattr(img_res, "scale", None)
     if scale is not None:
         if h is not None or w is not None:
@@ -113,8 +130,9 @@ def at_working_size(seq: FrameSequence, hw: tuple[int, int]) -> FrameSequence:
         return seq
     change = aspect_change(native, hw)
     if abs(change) > 0.02:
-        log.warning("img_res: frames of %dx%d are resized to %dx%d, changing their aspect ratio by %+.0f%% (give "
-                    "img_res.width alone to keep it)", native[1], native[0], hw[1], hw[0], 100 * change)
+        log.warning("img_res: frames of %dx%d are resized to %dx%d, changing their aspect ratio by %+.0f%% (both "
+                    "sides are multiples of 32 for the networks: img_res.width alone keeps the aspect as closely as "
+                    "that allows, a larger width closer)", native[1], native[0], hw[1], hw[0], 100 * change)
     load = seq.load
     K = resize_intrinsics(seq.K, native, tuple(hw))
     return replace(seq, K=K, load=lambda i: resize_image(load(i), int(hw[0]), int(hw[1])))
@@ -141,7 +159,21 @@ def build_sequence(data: Any, seq: str | int | None, img_res: Any) -> FrameSeque
     if data.kind == "synthetic":  # rendered at the working size directly
         return _synthetic(data, name, working_hw(img_res, KITTI_HW))
     opened = _open_native(data, name)
+    opened = replace(opened, poses=checked_poses(opened.poses, _ground_truth_source(data, name)))
     return at_working_size(opened, working_hw(img_res, tuple(opened.image(0).shape[-2:])))
+
+
+def _ground_truth_source(data: Any, name: str | None) -> str:
+    """Where the ground truth of a native dataset comes from, for the warning lines of
+    :func:`dfvo.data.pose_check.checked_poses`."""
+    if getattr(data, "gt", None):
+        return f"data.gt={data.gt}"
+    if getattr(data, "gt_topic", None):
+        return f"data.gt_topic={data.gt_topic} of {data.path}"
+    root = getattr(data, "root", None)  # data=video and data=rosbag have a path instead
+    where = {"kitti_odom": f"{root}/poses/{name}.txt", "kitti_raw": f"{root} drive {name} (oxts)",
+             "euroc": f"{root} (state_groundtruth_estimate0)", "tum": f"{root}/groundtruth.txt"}
+    return where.get(data.kind, f"data={data.kind} ground truth")
 
 
 def _check_range(data: Any) -> None:
@@ -178,6 +210,16 @@ def _open_native(data: Any, name: str | None) -> FrameSequence:
             raise ValueError("data=video needs data.path=FILE (a video file such as .mp4 or .mkv)")
         opened = open_video(data.path, fx=data.fx, fy=data.fy, cx=data.cx, cy=data.cy, dist=data.dist,
                             **_range(data))
+        return _with_ground_truth(opened, data)
+    if data.kind == "rosbag":
+        if not data.path:
+            raise ValueError("data=rosbag needs data.path=BAG (a ROS 1 .bag file, a ROS 2 bag folder, or its "
+                             ".db3/.mcap file)")
+        opened = open_rosbag(data.path, topic=data.topic, camera_info_topic=data.camera_info_topic, fx=data.fx,
+                             fy=data.fy, cx=data.cx, cy=data.cy, dist=data.dist, gt_topic=data.gt_topic,
+                             gt_parent_frame=data.gt_parent_frame, gt_child_frame=data.gt_child_frame,
+                             gt_camera_transform=data.gt_camera_transform, gt_tolerance=data.gt_tolerance,
+                             **_range(data))
         return _with_ground_truth(opened, data)
     return _with_ground_truth(_folder(data, name, sel), data)
 
@@ -253,11 +295,13 @@ class _OffsetWorld:
 
 def _kitti_raw(root: str, seq: str | None, sel: slice) -> FrameSequence:
     drives = [seq] if seq is not None else None
-    ds = KittiRawSnippets(root, None, None, drives=drives, stereo=True, temporal=False)
+    ds = KittiRawSnippets(root, None, None, drives=drives, stereo=False, temporal=True)  # the left camera
     if len(ds.drives) != 1:
         names = [d.dir.name for d in ds.drives]
         raise ValueError(f"data=kitti_raw under {root}: {names} drives found; choose one with seq=DRIVE")
     drive = ds.drives[0]
     ids = list(range(len(drive.left)))[sel]
     poses = drive.poses[ids] if drive.poses is not None else None
-    return FrameSequence(drive.dir.name, len(ids), drive.K.float(), lambda i: drive.load(drive.left[ids[i]]), poses)
+    stamps = drive.timestamps[ids] if drive.timestamps is not None else None
+    return FrameSequence(drive.dir.name, len(ids), drive.K.float(), lambda i: drive.load(drive.left[ids[i]]), poses,
+                         timestamps=stamps, frame_ids=np.asarray(ids))

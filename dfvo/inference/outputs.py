@@ -37,14 +37,16 @@ from dfvo.inference.config import InferConfig
 from dfvo.tracking.diagnostics import DIAGNOSTIC_FIELDS, FrameDiagnostics
 
 __all__ = ["prepare_out_dir", "FramesCsv", "CSV_FIELDS", "STAGE_FIELDS", "fallback_summary", "OutDirBusy",
-           "OutDirLock", "lock_out_dir", "clear_previous_outputs", "RUN_OUTPUTS", "OutputWriteError", "writing"]
+           "OutDirLock", "lock_out_dir", "clear_previous_outputs", "RUN_OUTPUTS", "OutputWriteError", "writing",
+           "is_bag", "remove_output"]
 
 log = logging.getLogger("dfvo.infer")
 
 LOCK_NAME = ".dfvo.lock"
 # what a run writes into out_dir besides its pose file (named in summary.json) and Hydra's own infer.log / .hydra/
 RUN_OUTPUTS = ("summary.json", "metrics.json", "frames.csv", "trajectory.png", "frames.png", "run.rrd",
-               "tensorboard")
+               "tensorboard", "bag")
+BAG_FILES = ("metadata.yaml", "*.db3", "*.mcap")  # what makes OUT/bag a bag (a killed run's has no metadata.yaml)
 
 STAGE_FIELDS = ["t_flow", "t_refine", "t_depth", "t_tracker"]
 CSV_FIELDS = [f for f in DIAGNOSTIC_FIELDS if not f.startswith("time_")] + STAGE_FIELDS + COVARIANCE_FIELDS
@@ -186,17 +188,39 @@ def clear_previous_outputs(out: Path) -> list[str]:
     removed = []
     for name in names:
         path = out / name
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        elif path.exists() or path.is_symlink():
-            path.unlink()
-        else:
+        if name == "bag" and not is_bag(path):
+            continue  # a folder of the user's own that happens to be called bag
+        if not (path.exists() or path.is_symlink()):
             continue
+        remove_output(path)
         removed.append(name)
     if removed:
         log.info("out_dir %s held an earlier run's outputs; removed %s (this run writes its own)", out,
                  ", ".join(removed))
     return removed
+
+
+def is_bag(path: Path) -> bool:
+    """``path`` is a folder holding a ROS 2 bag (:data:`BAG_FILES`), complete or left by a killed run."""
+    return path.is_dir() and not path.is_symlink() and any(any(path.glob(p)) for p in BAG_FILES)
+
+
+def remove_output(path: Path) -> None:
+    """Remove an earlier run's output ``path`` (file or folder).
+
+    Raises:
+        OutputWriteError: it cannot be removed (read-only, another owner); one line naming the file that failed.
+    """
+    try:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+    except OSError as err:
+        failed = err.filename or path
+        raise OutputWriteError(err.errno, f"cannot remove the earlier run's {path} ({failed}: "
+                               f"{err.strerror or err}); remove it yourself or pass another out_dir=",
+                               str(path)) from err
 
 
 class OutputWriteError(_OneLineOSError):

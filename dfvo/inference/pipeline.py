@@ -106,8 +106,10 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
     timer = StageTimer(cuda_sync=cfg.cuda_sync)
     pose_file = out / f"{seq.name}.txt"
     if cfg.pose_format == PoseFormat.tum and seq.timestamps is None:
-        raise ValueError(f"pose_format=tum needs the frames' timestamps and {seq.name} has none (data.times=FILE "
-                         "for a folder of frames); use pose_format=kitti")
+        where = {"folder": " (give data.times=FILE, one line per frame)",
+                 "kitti_raw": " (its image_02/timestamps.txt is missing)"}.get(cfg.data.kind, "")
+        raise ValueError(f"pose_format=tum needs the frames' timestamps and {seq.name} has none{where}; use "
+                         "pose_format=kitti")
     with writing(out / "summary.json"):
         write_json(out / "summary.json", {"sequence": seq.name, "frames": seq.length, "frames_written": None,
                                           "partial": True, "stopped_by": UNFINISHED, "pose_file": str(pose_file)})

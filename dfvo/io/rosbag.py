@@ -7,7 +7,8 @@ Convention:
       = the camera frame), ``/tf`` (``tf2_msgs/msg/TFMessage``: world -> camera), ``/dfvo/ground_truth``
       (``nav_msgs/msg/Odometry``, child ``<camera>_gt``, zero covariance; frames with ground truth only). One message
       per topic and frame, frame 0 included; the storage is sqlite3 (``BAG.db3``, what ``ros2 bag`` reads without
-      plugins), message definitions of ROS 2 Humble.
+      plugins) or MCAP (``BAG.mcap``, ``storage="mcap"``: what Foxglove opens directly, and ``ros2 bag`` with its
+      MCAP plugin), message definitions of ROS 2 Humble.
     - Frames: the world is the first camera's frame; the camera frame is the optical frame (x right, y down,
       z forward; REP 103's ``_optical`` convention), so ``pose`` is ``T_w_c`` exactly as in the trajectory file.
     - ``pose.covariance``: the world pose's covariance, propagated to first order from the per-frame step covariances
@@ -16,8 +17,10 @@ Convention:
       camera frame (linear, angular), with the step's covariance mapped the same way. Without timestamps the frames
       are stamped 0.1 s apart (:data:`NOMINAL_PERIOD_S`) and the twist is unknown (zero, ``covariance[0] = -1``).
     - Each message is inserted as its frame is produced and committed per frame, so a crash leaves the messages so
-      far in ``BAG.db3`` (``ros2 bag reindex`` restores its ``metadata.yaml``); :meth:`OdometryBagWriter.close`
-      finalises the bag (the inference run calls it also when interrupted by Ctrl-C or SIGTERM).
+      far in ``BAG.db3`` (``ros2 bag reindex`` restores its ``metadata.yaml``); in MCAP each frame's messages are
+      one chunk, written and flushed at once (a crash leaves an MCAP without its summary, which ``mcap recover``
+      restores); :meth:`OdometryBagWriter.close` finalises the bag (the inference run calls it also when interrupted
+      by Ctrl-C or SIGTERM).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from dfvo.geometry.pose_covariance import (
 )
 
 __all__ = ["OdometryBagWriter", "ROS_HINT", "NOMINAL_PERIOD_S", "TOPIC_ODOMETRY", "TOPIC_TF", "TOPIC_GROUND_TRUTH",
-           "rotation_to_quaternion", "import_rosbags"]
+           "STORAGES", "rotation_to_quaternion", "import_rosbags"]
 
 ROS_HINT = 'output.rosbag=true needs the rosbags library: pip install "dfvo[ros]"'
 NOMINAL_PERIOD_S = 0.1
@@ -46,6 +49,7 @@ TOPIC_TF = "/tf"
 TOPIC_GROUND_TRUTH = "/dfvo/ground_truth"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF = "tf2_msgs/msg/TFMessage"
+STORAGES = ("sqlite3", "mcap")
 
 
 def import_rosbags() -> tuple[Any, Any]:
@@ -87,13 +91,16 @@ class OdometryBagWriter:
         path: the bag folder to create (must not exist). world_frame, camera_frame: frame ids.
         ground_truth: (N,4,4) ``T_w_c`` of the frames (NaN rows: none), or None; written relative to its first pose
             (as the estimate starts at the identity).
+        storage: ``sqlite3`` or ``mcap`` (:data:`STORAGES`).
 
     Raises:
-        ImportError: ``rosbags`` missing (one line). FileExistsError: ``path`` exists.
+        ImportError: ``rosbags`` missing (one line). FileExistsError: ``path`` exists. ValueError: another storage.
     """
 
     def __init__(self, path: str | Path, world_frame: str = "odom", camera_frame: str = "camera",
-                 ground_truth: np.ndarray | None = None) -> None:
+                 ground_truth: np.ndarray | None = None, storage: str = "sqlite3") -> None:
+        if str(storage) not in STORAGES:
+            raise ValueError(f"output.rosbag_storage={storage!r}; expected one of {list(STORAGES)}")
         Writer, self.typestore = import_rosbags()
         self.path = Path(path)
         if self.path.exists():
@@ -104,7 +111,10 @@ class OdometryBagWriter:
             gt = np.asarray(ground_truth, dtype=np.float64)
             first = next((k for k in range(len(gt)) if np.isfinite(gt[k]).all()), None)
             self.gt = None if first is None else np.linalg.inv(gt[first]) @ gt
-        self.writer = Writer(self.path, version=9)
+        from rosbags.rosbag2 import StoragePlugin
+
+        plugin = StoragePlugin.MCAP if str(storage) == "mcap" else StoragePlugin.SQLITE3
+        self.writer = Writer(self.path, version=9, storage_plugin=plugin)
         self.writer.open()
         ts = self.typestore
         self.conn_odom = self.writer.add_connection(TOPIC_ODOMETRY, ODOMETRY, typestore=ts)
@@ -195,11 +205,18 @@ class OdometryBagWriter:
         self.frames += 1
 
     def _commit(self) -> None:
-        # the sqlite3 storage of rosbags keeps one transaction until close; committing per frame makes the messages
-        # so far durable (an attribute of the library's storage object: nothing happens if it has another shape)
-        conn = getattr(getattr(self.writer, "storage", None), "conn", None)
+        # the sqlite3 storage of rosbags keeps one transaction until close, its MCAP storage a chunk of up to 1 MiB in
+        # memory; committing (closing the chunk and flushing) per frame makes the messages so far durable
+        # (attributes of the library's storage objects: nothing happens if they have another shape)
+        storage = getattr(self.writer, "storage", None)
+        conn = getattr(storage, "conn", None)
         if conn is not None and hasattr(conn, "commit"):
             conn.commit()
+        chunk, bio = getattr(storage, "chunk", None), getattr(storage, "bio", None)
+        if hasattr(storage, "close_chunk") and hasattr(getattr(chunk, "bio", None), "tell") and chunk.bio.tell() \
+                and hasattr(bio, "flush"):
+            storage.close_chunk()
+            bio.flush()
 
     def close(self) -> None:
         """Finalise the bag (``metadata.yaml``); idempotent."""

@@ -53,12 +53,23 @@ __all__ = ["DFVODataModule", "collate_common_keys", "ResumableSampler", "Resumab
 log = logging.getLogger("dfvo.training")
 
 
+# keys a sample may lack, filled with the value that means "none here" for the others of its batch: true depth
+# (synthetic worlds) is <= 0 where there is none (dfvo.losses.depth_supervision), so a mixed KITTI + synthetic batch
+# supervises its synthetic samples
+FILL_MISSING = {"depth": 0.0}
+
+
 def collate_common_keys(samples: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """Stack the keys present in every sample (a mixed KITTI + synthetic batch keeps the shared keys)."""
+    """Stack the keys present in every sample (a mixed KITTI + synthetic batch keeps the shared keys), and those of
+    :data:`FILL_MISSING` present in some, filled where missing."""
     keys = set(samples[0])
     for s in samples[1:]:
         keys &= set(s)
-    return default_collate([{k: s[k] for k in keys} for s in samples])
+    fill = {k: v for k, v in FILL_MISSING.items() if k not in keys and any(k in s for s in samples)}
+    for key, value in fill.items():
+        like = next(s[key] for s in samples if key in s)
+        samples = [s if key in s else {**s, key: torch.full_like(like, value)} for s in samples]
+    return default_collate([{k: s[k] for k in keys | set(fill)} for s in samples])
 
 
 class DFVODataModule(L.LightningDataModule):

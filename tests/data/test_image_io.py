@@ -161,3 +161,42 @@ def test_folder_with_a_frame_twice_or_a_broken_link_is_refused(tmp_path: Path) -
     (tmp_path / "000003.png").symlink_to(tmp_path / "gone.png")
     with pytest.raises(DatasetError, match=r"1 broken link \(000003.png\)"):
         list_images(tmp_path)
+
+
+def test_12bit_data_in_16bit_png_read_as_12bit(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 42: a 16-bit PNG holding 12-bit sensor data (values up to 4095) was divided by 65535, nearly black, and
+    tracked as "100 % constant motion" without a cause: it is read as 12-bit, noted once for its folder."""
+    import dfvo.data.image_io as image_io
+
+    image_io._NOTED.clear()
+    arr = (np.arange(20 * 30, dtype=np.int64).reshape(20, 30) * 6 + 495).astype(np.uint16)  # 495..4089
+    for name in ("a.png", "b.png"):
+        Image.fromarray(arr).save(tmp_path / name)
+    with caplog.at_level("WARNING", "dfvo.data"):
+        a, b = read_image(tmp_path / "a.png"), read_image(tmp_path / "b.png")
+    torch.testing.assert_close(a[0].double(), torch.from_numpy(arr.astype(np.float64)) / 4095.0, atol=1e-6, rtol=0)
+    assert torch.equal(a, b) and a.max() > 0.99
+    notes = [r.getMessage() for r in caplog.records]
+    assert len(notes) == 1 and notes[0].startswith(f"{tmp_path / 'a.png'}: 16-bit image with values up to 4089: read "
+                                                   "as 12-bit data")
+
+
+def test_exif_orientation_is_named_and_frames_read_as_stored(tmp_path: Path,
+                                                             caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 42: a frame whose EXIF orientation says "rotated 90 degrees" is read as stored (as videos are), and the
+    cause is named once (it was only "100 % constant motion")."""
+    import dfvo.data.image_io as image_io
+
+    image_io._NOTED.clear()
+    arr = _rgb(30, 40)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(arr).save(tmp_path / "r.jpg", exif=exif, quality=100)
+    Image.fromarray(arr).save(tmp_path / "plain.jpg", quality=100)
+    with caplog.at_level("WARNING", "dfvo.data"):
+        rotated = read_image(tmp_path / "r.jpg")
+        plain = read_image(tmp_path / "plain.jpg")
+    assert rotated.shape == (3, 30, 40) and torch.equal(rotated, plain)  # the stored pixels, not turned
+    notes = [r.getMessage() for r in caplog.records]
+    assert len(notes) == 1 and notes[0].startswith(f"{tmp_path / 'r.jpg'}: EXIF orientation 6 (rotated 90 degrees in "
+                                                   "viewers): frames are read as stored")

@@ -231,3 +231,38 @@ def test_truncated_frame_named(tmp_path: Path) -> None:
     bad.write_bytes(bad.read_bytes()[:30])
     with pytest.raises(DatasetError, match="0000000002.png"):
         KittiRawSnippets(tmp_path, None, None)[0]
+
+
+@pytest.mark.parametrize("bad", [0, 1])
+def test_oxts_packet_with_nan_is_a_frame_without_ground_truth(tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                                                              bad: int) -> None:
+    """Issue 42: a packet with a NaN latitude (the first one too) leaves its frame without ground truth, names the
+    packet file, and keeps the others exact (metres from the first finite packet)."""
+    drive = make_raw(tmp_path, n=3)
+    write_oxts(drive, [(LAT0 + DLAT_PER_M * d, LON0, ALT0, 0, 0, math.pi / 2) for d in (0.0, 1.0, 2.0)])
+    packet = drive / "oxts" / "data" / f"{bad:010d}.txt"
+    packet.write_text("nan " + packet.read_text().split(" ", 1)[1])
+    with caplog.at_level("WARNING", "dfvo.data"):
+        poses = oxts_camera_poses(drive)
+    assert np.isnan(poses[bad]).all()
+    good = [k for k in range(3) if k != bad]
+    np.testing.assert_allclose(poses[good[0]], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(poses[good[1], 2, 3], good[1] - good[0], atol=2e-3)  # forward = north
+    assert [r.getMessage() for r in caplog.records] == [
+        f"oxts packet {packet}: NaN or infinite position or attitude; its frame is evaluated without ground truth"]
+
+
+def test_monocular_drive_without_right_camera_or_imu_calibration(tmp_path: Path,
+                                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 42: a monocular read needs neither image_03 nor P_rect_03, and a drive whose IMU calibration is missing
+    runs without ground truth (with one warning line naming the file) instead of being refused."""
+    drive = make_raw(tmp_path, n=3, with_p3=False)
+    write_oxts(drive, [(LAT0, LON0, ALT0, 0, 0, 0)] * 3)
+    (drive / "image_03" / "data").rename(tmp_path / "away")
+    (drive.parent / "calib_imu_to_velo.txt").unlink()
+    with pytest.raises(DatasetError, match="image_03"):  # a stereo read needs it
+        KittiRawSnippets(tmp_path, None, None, stereo=True)
+    with caplog.at_level("WARNING", "dfvo.data"):
+        ds = KittiRawSnippets(tmp_path, None, None, stereo=False, temporal=True)
+    assert len(ds) == 1 and ds.drives[0].poses is None and ds.drives[0].baseline is None
+    assert "calib_imu_to_velo.txt" in caplog.text and "has no ground truth" in caplog.text

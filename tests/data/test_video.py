@@ -140,3 +140,33 @@ def test_messages(clip: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     with pytest.raises(ImportError) as err:
         open_video(clip["mkv"], fx=fx, fy=fy, cx=cx, cy=cy)
     assert str(err.value) == PYAV_HINT == 'data=video needs PyAV: pip install "dfvo[video]"'
+
+
+def test_truncated_video_says_its_header_claims_more_frames(clip: dict, tmp_path: Path,
+                                                            caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 42 (a container's claims are checked): an MP4 with its index at the front (faststart) cut at 60 %: its
+    header still declares every frame, the reader names the file and both counts and uses the frames it holds,
+    which decode to the rendered ones (the last, cut inside, may not); a whole file says nothing."""
+    whole = tmp_path / "whole.mp4"
+    with av.open(str(whole), "w", options={"movflags": "faststart"}) as out:
+        stream = out.add_stream("ffv1", rate=10)
+        stream.width, stream.height, stream.pix_fmt = W, H, "bgr0"
+        for k, img in enumerate(clip["frames"]):
+            frame = av.VideoFrame.from_ndarray(img, format="rgb24")
+            frame.pts = k
+            for packet in stream.encode(frame):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    cut = tmp_path / "cut.mp4"
+    data = whole.read_bytes()
+    cut.write_bytes(data[: int(0.6 * len(data))])
+    with caplog.at_level("WARNING", "dfvo.data"):
+        VideoReader(whole)
+        assert not caplog.records
+        reader = VideoReader(cut)
+    assert 0 < reader.num_frames < N
+    line = caplog.records[-1].getMessage()
+    assert line == (f"video {cut}: its header declares {N} frames but {reader.num_frames} are in the file (truncated "
+                    f"or damaged?); the {reader.num_frames} found are used")
+    np.testing.assert_array_equal(reader.read(reader.num_frames - 2), clip["frames"][reader.num_frames - 2])

@@ -4,6 +4,7 @@ files in the working directory), ``evaluate_sequences`` (JSON, average, exclude)
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -122,7 +123,7 @@ def test_cli_help_prints_usage_and_exits_0(flag: str) -> None:
                           timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("usage: python -m dfvo.evaluate gt_dir=")
-    for text in ("pred_dir=PATH", "align=MODE", "default: 7dof", "seqs=[A,B]", "exclude=[A]", "out=FILE",
+    for text in ("pred_dir=PATH", "align=MODE", "default: auto", "seqs=[A,B]", "exclude=[A]", "out=FILE",
                  "plot_dir=DIR", "example:"):
         assert text in proc.stdout, text
 
@@ -233,3 +234,38 @@ def test_task_settings_that_do_not_compose_are_one_line(eval_cli) -> None:
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
     assert bad.stderr.startswith("error: ") and "flow.layout=kitti2020" in bad.stderr
     assert "expected one of [kitti2015, kitti2012]" in bad.stderr
+
+
+def test_multirun_folder_is_per_user(folders, tmp_path: Path) -> None:
+    """Issue 42: ``-m`` writes Hydra's sweep files under ``$TMPDIR/dfvo-eval-multirun-uUID``; another user's
+    ``dfvo-eval-multirun`` (not writable, here a file in the way) does not matter."""
+    gt_dir, pred_dir = folders
+    (tmp_path / "dfvo-eval-multirun").write_text("another user's")
+    proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", "-m", f"gt_dir={gt_dir}", f"pred_dir={pred_dir}",
+                           "align=7dof,6dof", "seqs=[09]"], cwd=REPO, capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, TMPDIR=str(tmp_path)))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    sweeps = list((tmp_path / f"dfvo-eval-multirun-u{os.getuid()}").glob("*/multirun.yaml"))
+    assert len(sweeps) == 1 and proc.stdout.count("alignment:") == 2
+
+
+def test_align_auto_reads_as_the_run_reported_it(folders, tmp_path: Path) -> None:
+    """Issue 42: an infer.py run (6-DoF in its metrics.json) evaluated again with the default align=auto gives the
+    run's own 6-DoF numbers and says so (the default was 7-DoF: 0.0108 against the run's 0.0112 m); predictions
+    without an infer.py metrics.json get 7-DoF."""
+    gt_dir, pred_dir = folders
+    assert parse_args(["gt_dir=a", f"pred_dir={pred_dir}"])["align"] == "7dof"
+    (pred_dir / "metrics.json").write_text(json.dumps({"sequence": "09", "align": "6dof"}))
+    assert parse_args(["gt_dir=a", f"pred_dir={pred_dir}"])["align"] == "6dof"
+    assert parse_args(["gt_dir=a", f"pred={pred_dir / '09.txt'}"])["align"] == "6dof"
+    assert parse_args(["gt_dir=a", f"pred_dir={pred_dir}", "align=7dof"])["align"] == "7dof"
+    out = tmp_path / "m.json"
+    proc = subprocess.run([sys.executable, "-m", "dfvo.evaluate", f"gt={gt_dir / '09.txt'}",
+                           f"pred={pred_dir / '09.txt'}", f"out={out}"], cwd=REPO, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    note = f"align=auto: 6dof, the alignment infer.py reported this run with ({pred_dir / 'metrics.json'})"
+    assert note in proc.stdout
+    direct = evaluate_trajectory(_line(250, 1.0), _pred09(), "6dof")
+    got = json.loads(out.read_text())["sequences"]
+    assert next(iter(got.values()))["rpe_m"] == pytest.approx(direct["rpe_m"], rel=1e-9)

@@ -230,3 +230,20 @@ def test_trajectories_are_compared_relative_to_their_first_frame(align: str) -> 
     assert res["ate_m"] < 1e-9 and res["rpe_m"] < 1e-9
     # r_err goes through the devkit's acos(0.5 (trace - 1)), whose floor near 0 is ~sqrt(eps) rad
     assert res["t_err_pct"] < 1e-9 and res["r_err_deg_per_100m"] < 1e-5
+
+
+def test_aligned_prediction_leaves_frames_without_ground_truth_out() -> None:
+    """Issue 42: the trajectory plots of a run whose ground truth has a NaN frame (a bad oxts packet) are made, the
+    alignment from the other frames, the frame itself NaN in the re-based ground truth."""
+    from dfvo.eval.odometry_metrics import aligned_prediction
+
+    gt = np.tile(np.eye(4), (5, 1, 1))
+    gt[:, 2, 3] = np.arange(5.0)
+    pred = gt.copy()
+    pred[:, 2, 3] *= 0.5  # half the scale
+    gt[0] = np.nan  # the first frame has no ground truth: re-based to frame 1
+    gt_b, pred_b, aligned, params = aligned_prediction(gt, pred, align="7dof")
+    assert np.isnan(gt_b[0]).all() and np.isfinite(gt_b[1:]).all()
+    np.testing.assert_allclose(gt_b[1:, 2, 3], [0, 1, 2, 3], atol=1e-12)
+    assert params["scale"] == pytest.approx(2.0)
+    np.testing.assert_allclose(aligned[1:, 2, 3], gt_b[1:, 2, 3], atol=1e-9)

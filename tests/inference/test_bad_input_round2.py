@@ -474,10 +474,13 @@ def test_misspelt_key_names_the_closest_valid_key(tmp_path: Path, tool: list[str
     ("data.camera_height=165", "data.camera_height=165.0; expected metres (the camera's height above the road, at "
                                "most 20 m); for 165.0 cm give 1.65"),
     ("tracker.scale.camera_height=150", "tracker.scale.camera_height=150.0; expected metres"),
+    ("img_res.width=20", "img_res.width=20: frames of 1241x376 would be tracked at 32x32; expected at least 64 pixels "
+                         "on each side"),
 ])
 def test_round3_settings_are_one_line(infer_cli, override: str, message: str) -> None:
     """Issue 42: a negative thread count and a camera height given in centimetres end in one line naming the
-    setting (they used to be a 39-line traceback and a silently 100x longer path)."""
+    setting (they used to be a 39-line traceback and a silently 100x longer path); a working size too small to track
+    says which width would do (it ran, "100 % constant motion", advising the setting the user gave)."""
     proc = infer_cli("data.num_frames=3", override, check=False)
     assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
     assert message in error_line(proc), proc.stderr[-1000:]
@@ -506,3 +509,116 @@ def test_dataset_setting_without_the_dataset_names_data_kind(infer_cli) -> None:
     assert "has no data.root: choose the dataset first, e.g. data=kitti_odom data.root=..." in error_line(proc)
     proc = infer_cli("data.num_frams=3", check=False)
     assert "the closest valid key is 'data.num_frames'" in error_line(proc)
+
+
+def test_kitti_raw_oxts_packet_with_nan_latitude_finishes_the_run(infer_cli, tmp_path: Path) -> None:
+    """Issue 42: one oxts packet of the real drive 0005 with a NaN latitude: the packet file is named, its frame is
+    evaluated without ground truth, metrics and plots are written and the summary is complete (it ended in the
+    Python API's advice, no plots, summary.json "unfinished … killed"). The folder has no image_03 (a monocular
+    run needs none) and pose_format=tum takes the times of image_02/timestamps.txt (it said the drive had none)."""
+    src = REPO.parent / "shared" / "data" / "kitti_raw_test" / "2011_09_26"
+    if not src.is_dir():
+        pytest.skip(f"{src} not found")
+    date = tmp_path / "raw" / "2011_09_26"
+    drive = date / "2011_09_26_drive_0005_sync"
+    (drive / "oxts" / "data").mkdir(parents=True)
+    for f in src.glob("calib_*.txt"):
+        (date / f.name).symlink_to(f)
+    (drive / "image_02").symlink_to(src / drive.name / "image_02")
+    for k, f in enumerate(sorted((src / drive.name / "oxts" / "data").glob("*.txt"))):
+        text = f.read_text()
+        (drive / "oxts" / "data" / f.name).write_text("nan " + text.split(" ", 1)[1] if k == 2 else text)
+    out = tmp_path / "out"
+    proc = infer_cli("data=kitti_raw", f"data.root={date.parent}", f"seq={drive.name}", "data.end=5",
+                     "pose_format=tum", f"out_dir={out}", check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    log = (out / "infer.log").read_text()
+    assert f"oxts packet {drive}/oxts/data/0000000002.txt: NaN or infinite position" in log
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["partial"] is False and summary["metrics"]["gt_missing"] == 1
+    assert summary["metrics"]["num_frames"] == 4 and summary["metrics"]["rpe_m"] < 0.1
+    assert (out / "trajectory.png").stat().st_size > 0 and (out / "frames.png").stat().st_size > 0
+    rows = [line.split() for line in (out / f"{drive.name}.txt").read_text().splitlines()]
+    assert len(rows) == 5 and all(len(r) == 8 for r in rows)
+    assert float(rows[1][0]) - float(rows[0][0]) == pytest.approx(0.10338, abs=1e-4)  # 13:04:32.3458 -> .4492
+
+
+# ------------------------------------------------------------------------------------------------ bags and logs
+def _fake_bag(folder: Path, *names: str) -> Path:
+    folder.mkdir(parents=True)
+    for name in names:
+        (folder / name).write_text("x")
+    return folder
+
+
+@pytest.mark.parametrize("left", [("metadata.yaml", "bag_0.db3"), ("bag_0.db3",)], ids=["earlier run", "killed run"])
+def test_rerun_without_rosbag_removes_the_earlier_bag(infer_cli, tmp_path: Path, left: tuple[str, ...]) -> None:
+    """Issue 42: a rerun without output.rosbag into a folder holding an earlier run's bag/ (or a SIGKILLed run's,
+    without metadata.yaml) leaves only the new run's outputs (the old bag stayed); a folder of the user's own that is
+    not a bag stays."""
+    out = tmp_path / "out"
+    _fake_bag(out / "bag", *left)
+    own = _fake_bag(out / "notes", "metadata.yaml")
+    infer_cli(f"out_dir={out}", "data.num_frames=3", *SMALL, *ORACLE)
+    assert not (out / "bag").exists() and (own / "metadata.yaml").is_file()
+    assert (out / POSES).is_file()
+
+
+def test_bag_that_cannot_be_removed_is_one_line(infer_cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 42: an earlier run's bag/ that cannot be removed (read-only, another owner: PermissionError from
+    rmtree, as a non-root user gets on a read-only bag/) is one line naming the bag and the file, not
+    ``[Errno 13] Permission denied: 'metadata.yaml'``."""
+    out = tmp_path / "out"
+    bag = _fake_bag(out / "bag", "metadata.yaml", "bag_0.db3")
+
+    def refuse(path, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(Path(path) / "metadata.yaml"))
+
+    monkeypatch.setattr("shutil.rmtree", refuse)
+    proc = infer_cli(f"out_dir={out}", "data.num_frames=3", *SMALL, *ORACLE, check=False)
+    assert proc.returncode == 1
+    assert error_line(proc).startswith(f"dfvo-infer: error: cannot remove the earlier run's {bag} "
+                                       f"({bag}/metadata.yaml: Permission denied); remove it yourself or pass "
+                                       "another out_dir=")
+
+
+@pytest.mark.parametrize("fail_at", [0, 2], ids=["full at start", "fills mid-run"])
+def test_rosbag_on_a_full_disk_is_one_line(infer_cli, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                           fail_at: int) -> None:
+    """Issue 42: output.rosbag=true on a full disk (sqlite3's ``database or disk is full``, at the start or mid-run):
+    one line naming the bag, and mid-run the summary says where it stopped (it was a 54-line traceback and a summary
+    left "unfinished … killed")."""
+    pytest.importorskip("rosbags")
+    import sqlite3
+
+    from dfvo.io.rosbag import OdometryBagWriter
+
+    real = OdometryBagWriter.write
+
+    def write(self, index, *args, **kwargs):
+        if index >= fail_at:
+            raise sqlite3.OperationalError("database or disk is full")
+        return real(self, index, *args, **kwargs)
+
+    monkeypatch.setattr(OdometryBagWriter, "write", write)
+    out = tmp_path / "out"
+    proc = infer_cli(f"out_dir={out}", "data.num_frames=5", "output.rosbag=true", "batch_size=1", *SMALL, *ORACLE,
+                     check=False)
+    assert proc.returncode == 1
+    line = error_line(proc)
+    assert line.startswith(f"dfvo-infer: error: cannot write {out / 'bag'}: database or disk is full (sqlite3); free "
+                           "space on its disk or pass another out_dir="), line
+    if fail_at:
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["partial"] is True and summary["stopped_by"] == "error" and summary["frames_written"] >= 2
+
+
+def test_log_file_that_cannot_be_opened_is_one_line(infer_cli, tmp_path: Path) -> None:
+    """Issue 42: a log file Hydra cannot open (a read-only out_dir; here infer.log is a folder, which fails the same
+    way for root too) names the file instead of ``Unable to configure handler 'file'``."""
+    out = tmp_path / "out"
+    (out / "infer.log").mkdir(parents=True)
+    proc = infer_cli(f"out_dir={out}", "data.num_frames=3", *SMALL, *ORACLE, check=False)
+    assert proc.returncode == 1
+    assert error_line(proc) == (f"dfvo-infer: error: cannot write the log file {out / 'infer.log'}: Is a directory; "
+                                "pass out_dir= a writable folder")

@@ -375,17 +375,19 @@ def test_folder_and_kitti_raw_sequences(tmp_path: Path, kitti_raw_root: Path) ->
     from dfvo.inference.frames import build_sequence
 
     for k in range(3):
-        Image.fromarray(np.full((40, 80, 3), 60 * k, np.uint8)).save(tmp_path / f"f{k}.png")
+        Image.fromarray(np.full((128, 256, 3), 60 * k, np.uint8)).save(tmp_path / f"f{k}.png")
     from dfvo.inference.config import FolderDataConfig, KittiRawDataConfig
 
-    data = FolderDataConfig(root=str(tmp_path), fx=100.0, fy=100.0, cx=39.5, cy=19.5, start=1)
-    seq = build_sequence(data, None, OmegaConf.create({"height": 20, "width": 40}))
+    data = FolderDataConfig(root=str(tmp_path), fx=200.0, fy=200.0, cx=127.5, cy=63.5, start=1)
+    seq = build_sequence(data, None, OmegaConf.create({"height": 64, "width": 128}))
     assert seq.length == 2 and seq.poses is None and seq.world is None
-    torch.testing.assert_close(seq.image(1), torch.full((3, 20, 40), 120 / 255))  # frame 2 of the folder
-    torch.testing.assert_close(seq.K, torch.tensor([[50.0, 0, 19.5], [0, 50.0, 9.5], [0, 0, 1]]))
+    torch.testing.assert_close(seq.image(1), torch.full((3, 64, 128), 120 / 255))  # frame 2 of the folder
+    torch.testing.assert_close(seq.K, torch.tensor([[100.0, 0, 63.5], [0, 100.0, 31.5], [0, 0, 1]]))
     with pytest.raises(ValueError, match="data.fx"):
-        build_sequence(FolderDataConfig(root=str(tmp_path), fy=100.0, cx=39.5, cy=19.5), None,
-                       OmegaConf.create({"height": 20, "width": 40}))
+        build_sequence(FolderDataConfig(root=str(tmp_path), fy=200.0, cx=127.5, cy=63.5), None,
+                       OmegaConf.create({"height": 64, "width": 128}))
+    with pytest.raises(ValueError, match="would be tracked at 40x20; expected at least 64 pixels on each side"):
+        build_sequence(data, None, OmegaConf.create({"height": 20, "width": 40}))
     raw = KittiRawDataConfig(root=str(kitti_raw_root.parent), end=5)
     seq = build_sequence(raw, "2011_09_26_drive_0001", OmegaConf.create({"height": 192, "width": 640}))
     assert seq.name == "2011_09_26_drive_0001_sync" and seq.length == 5 and seq.image(4).shape == (3, 192, 640)

@@ -136,6 +136,32 @@ def test_writer_without_timestamps_and_replaced_folder(tmp_path: Path) -> None:
         OdometryBagWriter(path)
 
 
+def test_mcap_storage(tmp_path: Path) -> None:
+    """``storage="mcap"``: one ``bag.mcap`` (no sqlite3 file) with the same messages as the sqlite3 bag, readable
+    after each frame (its chunks written as frames come) and complete after close; another storage is one line."""
+    T1 = np.eye(4)
+    T1[:3, 3] = [0.1, -0.2, 1.0]
+    paths = {}
+    for storage in ("sqlite3", "mcap"):
+        paths[storage] = tmp_path / storage
+        with OdometryBagWriter(paths[storage], storage=storage, ground_truth=np.stack([np.eye(4), T1])) as writer:
+            writer.write(0, np.eye(4), None, 5.0)
+            if storage == "mcap":  # the first frame's messages are on disk already, one chunk
+                data = (paths[storage] / "mcap.mcap").read_bytes()
+                assert data.startswith(b"\x89MCAP0\r\n") and data.count(b"/dfvo/odometry") == 1
+            writer.write(1, T1, np.eye(6) * 1e-4, 5.1)
+    assert sorted(p.name for p in paths["mcap"].iterdir()) == ["mcap.mcap", "metadata.yaml"]
+    assert "storage_identifier: mcap" in (paths["mcap"] / "metadata.yaml").read_text()
+    bags = {storage: read_bag(path) for storage, path in paths.items()}
+    assert set(bags["mcap"]) == set(bags["sqlite3"]) == {TOPIC_ODOMETRY, TOPIC_TF, TOPIC_GROUND_TRUTH}
+    for topic, messages in bags["sqlite3"].items():
+        assert [s for s, _ in bags["mcap"][topic]] == [s for s, _ in messages] == [5_000_000_000, 5_100_000_000]
+        assert [repr(m) for _, m in bags["mcap"][topic]] == [repr(m) for _, m in messages]
+    assert np.allclose(pose_matrix(bags["mcap"][TOPIC_ODOMETRY][1][1].pose.pose), T1, atol=1e-12)
+    with pytest.raises(ValueError, match=r"^output.rosbag_storage='zip'; expected one of \['sqlite3', 'mcap'\]$"):
+        OdometryBagWriter(tmp_path / "zip", storage="zip")
+
+
 def test_missing_extra_is_one_line(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setitem(sys.modules, "rosbags.rosbag2", None)
     hint = r"^output.rosbag=true needs the rosbags library: pip install \"dfvo\[ros\]\"$"

@@ -3,6 +3,7 @@ sequence boundary, for the synthetic, KITTI odometry and KITTI raw training data
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -113,3 +114,22 @@ def test_kitti_raw_snippets_with_frame_skips(kitti_raw_root: Path) -> None:
                        "data.frame_cache_dir=null").train_set
     assert "image_right" not in flow[0] and int(flow[0]["frame_skip"]) == 3
     assert torch.equal(flow[0]["image_next"], own[5]["image"])
+
+
+def test_mixed_batch_keeps_the_synthetic_true_depth() -> None:
+    """A KITTI + synthetic batch (data=kitti_raw_synthetic): the keys every sample has are stacked, and the true
+    depth of the synthetic samples is kept with zeros ("no ground truth", what log_depth_l1 leaves out) for the
+    KITTI ones, so experiment=depth_scene supervises the synthetic samples of every batch (the key was dropped)."""
+    from dfvo.losses.depth_supervision import log_depth_l1
+    from dfvo.training.datamodule import collate_common_keys
+
+    real = {"image": torch.rand(3, 4, 6), "T_right_left": torch.eye(4)}
+    synthetic = {"image": torch.rand(3, 4, 6), "T_right_left": torch.eye(4), "depth": torch.full((1, 4, 6), 5.0),
+                 "flow": torch.zeros(2, 4, 6)}
+    batch = collate_common_keys([real, synthetic])
+    assert set(batch) == {"image", "T_right_left", "depth"}
+    assert torch.equal(batch["depth"][0], torch.zeros(1, 4, 6)) and torch.equal(batch["depth"][1], synthetic["depth"])
+    pred = torch.full((2, 1, 4, 6), 5.0 * math.e)  # log error 1 where there is truth
+    loss, count = log_depth_l1(pred, batch["depth"], 100.0)
+    assert float(count) == 24 and float(loss) == pytest.approx(1.0)
+    assert set(collate_common_keys([real, real])) == {"image", "T_right_left"}
