@@ -1,6 +1,6 @@
 """NEES of the per-frame step covariance of an ``infer.py`` run against ground truth; prints JSON.
 
-    python studies/covariance_nees.py OUT [OUT ...] [--gt GT.txt ...] [--inflation K]
+    python studies/covariance_nees.py OUT [OUT ...] [--gt GT.txt ...] [--inflation K] [--drop-correlation]
 
 ``OUT`` is a run's folder (``frames.csv``, the trajectory ``SEQ.txt`` in KITTI format, ``summary.json``); the ground
 truth defaults to ``ROOT/poses/SEQ.txt`` of a KITTI odometry run (``--gt`` gives it per run otherwise). For every
@@ -47,7 +47,7 @@ def read_kitti_poses(path: Path) -> np.ndarray:
     return T
 
 
-def evaluate(out: Path, gt_path: Path | None, inflation: float) -> dict:
+def evaluate(out: Path, gt_path: Path | None, inflation: float, drop_correlation: bool = False) -> dict:
     summary = json.loads((out / "summary.json").read_text())
     pred = read_kitti_poses(Path(summary["pose_file"]) if Path(summary["pose_file"]).is_file()
                             else out / Path(summary["pose_file"]).name)
@@ -63,6 +63,10 @@ def evaluate(out: Path, gt_path: Path | None, inflation: float) -> dict:
         if C is None:
             continue
         C = C * inflation
+        if drop_correlation and tracker in ("E", "PnP"):  # what tracker.covariance.correlated=false writes
+            C = C.clone()
+            C[:3, 3:] = 0.0
+            C[3:, :3] = 0.0
         e = step_error(torch.from_numpy(np.linalg.inv(pred[k - 1]) @ pred[k]),
                        torch.from_numpy(np.linalg.inv(gt[k - 1]) @ gt[k]))
         per.setdefault(tracker, []).append((nees(e, C), nees(e[:3], C[:3, :3]), nees(e[3:], C[3:, 3:])))
@@ -97,11 +101,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--gt", nargs="*", type=Path, default=None, help="ground-truth KITTI pose files, one per run")
     parser.add_argument("--inflation", type=float, default=1.0)
+    parser.add_argument("--drop-correlation", action="store_true",
+                        help="zero the rotation-translation cross block of E and PnP frames (the default since "
+                             "tracker.covariance.correlated=false: to read runs written before it as it would)")
     args = parser.parse_args(argv)
     gts = args.gt or [None] * len(args.runs)
     if len(gts) != len(args.runs):
         sys.exit("covariance_nees.py: give one --gt file per run (or none: KITTI's ROOT/poses/SEQ.txt)")
-    print(json.dumps([evaluate(r, g, args.inflation) for r, g in zip(args.runs, gts, strict=True)], indent=2))
+    results = [evaluate(r, g, args.inflation, args.drop_correlation) for r, g in zip(args.runs, gts, strict=True)]
+    print(json.dumps(results, indent=2))
 
 
 if __name__ == "__main__":

@@ -20,7 +20,9 @@ Where each frame's covariance comes from (:func:`step_covariance`):
       larger): a filter fusing it learns next to nothing from the frame.
     The normal equations' part (pixel noise) is multiplied by ``tracker.covariance.inflation``: 1 is the model's
     own, calibrated on the synthetic world with independent pixel noise; real flow errors are correlated between
-    neighbouring pixels, which the normal equations cannot see (``docs/robots.md``: the factor KITTI needs).
+    neighbouring pixels, which the normal equations cannot see (``docs/robots.md``: the factor KITTI needs). For the
+    same reason the correlation between the rotation and the translation errors that the normal equations give is
+    dropped unless ``tracker.covariance.correlated`` (measured: real steps do not follow it; the blocks do).
 """
 
 from __future__ import annotations
@@ -322,6 +324,10 @@ def step_covariance(tracker: str | None, T_cur_prev: torch.Tensor | None, T_prev
                                   cfg.scale_filter.cnn_log_std ** 2, ccfg.inflation, backwards=backwards)
     if cov is None or not bool(torch.isfinite(cov).all()):
         return constant_motion_covariance(T_prev_cur, ccfg)
+    if not ccfg.correlated:  # the rotation and translation blocks alone (tracker.covariance.correlated)
+        cov = cov.clone()
+        cov[:3, 3:] = 0.0
+        cov[3:, :3] = 0.0
     return cov
 
 

@@ -65,7 +65,7 @@ def noisy_run(num_frames: int, pixel_sigma: float, depth_log_sigma: float, seed:
                         correspondence=SelectionConfig(method="uniform"),  # rows chosen independently of the noise
                         scale=ScaleConfig(depth_views=1, temporal=False, camera_height=None),
                         scale_filter=ScaleFilterConfig(cnn_log_std=depth_log_sigma),
-                        covariance=CovarianceConfig(inflation=1.0))  # independent noise: the model as it is
+                        covariance=CovarianceConfig(inflation=1.0, correlated=True))  # independent noise: the model as it is
     vo = VisualOdometry(cfg)
     K = world.intrinsics()[None]
     poses = world.poses().double()
@@ -200,3 +200,24 @@ def test_rows_constant_motion_and_ros_order() -> None:
     T[2, 3] = 3.0
     cm = constant_motion_covariance(T, TrackerConfig().covariance)
     assert torch.allclose(cm.diagonal(), torch.tensor([0.01] * 3 + [9.0] * 3, dtype=torch.float64))
+
+
+def test_default_keeps_the_blocks_and_drops_the_rotation_translation_correlation() -> None:
+    """tracker.covariance.correlated=false (the default): the E step's covariance is the correlated model's with
+    its rotation-translation cross block zeroed (the blocks themselves identical, still positive definite), and the
+    pose is the same; the correlated model does have a cross block on this turning step."""
+    world = SyntheticWorld(seed=0, num_frames=3)
+    frame = world.render(0, right=False)
+    out = {}
+    for correlated in (True, False):
+        cfg = TrackerConfig(scale=ScaleConfig(depth_views=1, temporal=False, camera_height=None),
+                            covariance=CovarianceConfig(correlated=correlated))
+        out[correlated] = VisualOdometry(cfg).step(frame["flow_fwd"][None], frame["flow_bwd"][None],
+                                                   frame["depth"][None], world.intrinsics()[None])
+    full, blocks = out[True].covariance, out[False].covariance
+    assert out[False].diagnostics.tracker == "E" and torch.equal(out[True].T_prev_cur, out[False].T_prev_cur)
+    std = full.diagonal().sqrt()
+    assert (full / (std[:, None] * std[None]))[:3, 3:].abs().max() > 0.5  # yaw against sideways motion, ~0.9
+    assert torch.equal(blocks[:3, :3], full[:3, :3]) and torch.equal(blocks[3:, 3:], full[3:, 3:])
+    assert not blocks[:3, 3:].any() and not blocks[3:, :3].any()
+    assert torch.linalg.eigvalsh(blocks).min() > 0

@@ -196,7 +196,8 @@ def test_streaming_equals_batched_and_exact_flow_stays_exact() -> None:
 
     def cfg() -> TrackerConfig:
         return TrackerConfig(scale=ScaleConfig(method="simple", depth_views=1),
-                             covariance=CovarianceConfig(inflation=1.0), window=WindowConfig(enabled=True, frames=4))
+                             covariance=CovarianceConfig(inflation=1.0, correlated=True),
+                             window=WindowConfig(enabled=True, frames=4))
 
     batched = VisualOdometry(cfg()).run(ff, fb, d, K_w, batch_size=3)
     vo = VisualOdometry(cfg())
