@@ -2,8 +2,9 @@
 
 Convention:
     - ``read_image`` returns a (3,H,W) float32 tensor in [0,1], RGB. Grayscale files are replicated to three
-      channels, alpha is dropped, palette images are expanded. 8-bit files are divided by 255, 16-bit
-      files by 65535 (by 4095 when no value exceeds it: 12-bit data, :func:`sixteen_bit_to_unit`). ``decode_image`` does the same for a file held in memory (a ROS ``CompressedImage``).
+      channels, alpha is dropped, palette images are expanded. 8-bit files are divided by 255, 16-bit files by 65535
+      (by 4095 when no value exceeds it: 12-bit data, :func:`sixteen_bit_to_unit`). ``decode_image`` does the same
+      for a file held in memory (a ROS ``CompressedImage``).
     - Image folders are listed in natural order (``frame2`` before ``frame10``), PNG and JPEG only; hidden files
       (names starting with ``.``, such as macOS's ``._000001.png``) are skipped with one warning.
 """

@@ -15,8 +15,8 @@ Convention:
     - Pixels: ``mono8``/``8UC1``, ``mono16``/``16UC1``, ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``, ``rgb16``, ``bgr16``
       and the 8-bit Bayer mosaics ``bayer_rggb8``, ``bayer_bggr8``, ``bayer_gbrg8``, ``bayer_grbg8`` (bilinear
       demosaicking, :func:`debayer`) become (3,H,W) float32 RGB in [0,1] exactly as
-      :func:`dfvo.data.image_io.array_to_image` converts the same pixels (8-bit / 255, 16-bit / 65535 or 12-bit data / 4095, grey
-      replicated); a ``CompressedImage`` (JPEG, PNG) is decoded by Pillow as a file of the same bytes
+      :func:`dfvo.data.image_io.array_to_image` converts the same pixels (8-bit / 255, 16-bit / 65535 or 12-bit
+      data / 4095, grey replicated); a ``CompressedImage`` (JPEG, PNG) is decoded by Pillow as a file of the same bytes
       (:func:`dfvo.data.image_io.decode_image`). So a frame equals the PNG of its pixels read by ``data=folder``.
       The first pass reads the stamps only; frames are decoded on demand (in order: each message read once) and the
       last ``cache`` kept.

@@ -77,6 +77,8 @@ def build_sources(icfg: InferConfig, world: Any, device: str) -> Sources:
                          "flow_refinement": None if refine is None else asdict(refine),
                          "flow_runtime": getattr(flow_src, "runtime", None),
                          "depth_runtime": getattr(depth_src, "runtime", None),
+                         "flow_runtime_reason": getattr(flow_src, "runtime_reason", None),
+                         "depth_runtime_reason": getattr(depth_src, "runtime_reason", None),
                          "depth_every": int(icfg.depth.every)},
              "online_finetune": finetuner is not None, "device": device}
     return Sources(flow_src, depth_src, refine, finetuner, extra)

@@ -46,11 +46,15 @@ class DisPreset(StrEnum):
 class RuntimeKind(StrEnum):
     """What runs a network: ``torch`` (PyTorch eager, always available: the fallback), ``onnxruntime`` or
     ``openvino`` (the network exported to ONNX from its checkpoint and run by that library on the CPU; both come
-    with the ``fast`` extra, ``pip install "dfvo[fast]"``; :mod:`dfvo.sources.runtime`)."""
+    with the ``fast`` extra, ``pip install "dfvo[fast]"``; :mod:`dfvo.sources.runtime`), or ``auto``: OpenVINO in
+    bf16 where the CPU has bf16 units (AVX512-BF16 or AMX, read from its flags) and the extra is installed, PyTorch
+    in fp32 elsewhere (:func:`dfvo.sources.runtime.engines.resolve_auto_runtime`; the choice and its reason go into
+    ``summary.json``)."""
 
     torch = "torch"
     onnxruntime = "onnxruntime"
     openvino = "openvino"
+    auto = "auto"
 
 
 @dataclass
@@ -61,7 +65,7 @@ class RuntimeConfig:
         kind: see :class:`RuntimeKind`.
         precision: ``fp32``, or ``bf16`` (``openvino`` only, on CPUs with bf16 instructions: AVX512-BF16 or AMX,
             read from the CPU's flags; about half the time of fp32 there, outputs within ~0.5 % of fp32:
-            ``docs/speed.md``).
+            ``docs/speed.md``); ``kind=auto`` chooses it with the runtime.
         cache_dir: folder of the exported models (made from the checkpoint on first use and checked against it on
             every later use); None: ``$DFVO_CACHE_DIR/runtime``, else ``~/.cache/dfvo/runtime``.
     """

@@ -16,6 +16,7 @@ Convention:
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +66,13 @@ class _Runtime:
     def __init__(self, config: RuntimeConfig | None, what: str, device: torch.device) -> None:
         self.config = config or RuntimeConfig()
         self.kind = RuntimeKind(self.config.kind)
+        self.reason = f"{what}.runtime.kind={self.kind.value}"
+        if self.kind == RuntimeKind.auto:
+            from dfvo.sources.runtime.engines import resolve_auto_runtime
+
+            kind, precision, why = resolve_auto_runtime(str(device))
+            self.config = dataclasses.replace(self.config, kind=RuntimeKind(kind), precision=precision)
+            self.kind, self.reason = RuntimeKind(kind), f"{what}.runtime.kind=auto: {why}"
         self.what = what
         self.engines: dict[tuple[int, int], Any] = {}
         self.name = self.kind.value + ("" if self.config.precision == "fp32" else f"-{self.config.precision}")
@@ -128,6 +136,11 @@ class NetworkFlow:
     def runtime(self) -> str:
         """What runs the network: ``torch``, ``onnxruntime`` or ``openvino`` (``openvino-bf16`` in bf16)."""
         return self._runtime.name
+
+    @property
+    def runtime_reason(self) -> str:
+        """Why this runtime: the setting, or what ``runtime.kind=auto`` found on this machine."""
+        return self._runtime.reason
 
     def export_spec(self, input_size: tuple[int, int]) -> Any:
         """The :class:`dfvo.sources.runtime.export.ExportSpec` of this network at ``input_size`` (h, w)."""
@@ -233,6 +246,11 @@ class NetworkDepth:
     def runtime(self) -> str:
         """What runs the network: ``torch``, ``onnxruntime`` or ``openvino`` (``openvino-bf16`` in bf16)."""
         return self._runtime.name
+
+    @property
+    def runtime_reason(self) -> str:
+        """Why this runtime: the setting, or what ``runtime.kind=auto`` found on this machine."""
+        return self._runtime.reason
 
     @staticmethod
     def network_size(h: int, w: int) -> tuple[int, int]:

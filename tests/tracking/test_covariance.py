@@ -65,7 +65,8 @@ def noisy_run(num_frames: int, pixel_sigma: float, depth_log_sigma: float, seed:
                         correspondence=SelectionConfig(method="uniform"),  # rows chosen independently of the noise
                         scale=ScaleConfig(depth_views=1, temporal=False, camera_height=None),
                         scale_filter=ScaleFilterConfig(cnn_log_std=depth_log_sigma),
-                        covariance=CovarianceConfig(inflation=1.0, correlated=True))  # independent noise: the model as it is
+                        # independent noise: the model as it is
+                        covariance=CovarianceConfig(inflation=1.0, correlated=True))
     vo = VisualOdometry(cfg)
     K = world.intrinsics()[None]
     poses = world.poses().double()

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 __all__ = ["EXTRA", "RUNTIME_PACKAGES", "EXPORT_PACKAGES", "PRECISIONS", "Engine", "cpu_flags", "require_runtime",
-           "check_precision", "build_engine", "OnnxRuntimeEngine", "OpenVinoEngine"]
+           "check_precision", "build_engine", "OnnxRuntimeEngine", "OpenVinoEngine", "resolve_auto_runtime"]
 
 EXTRA = "fast"
 """The optional extra that brings the runtimes: ``pip install "dfvo[fast]"``."""
@@ -38,6 +38,23 @@ def cpu_flags() -> set[str]:
     except OSError:
         pass
     return set()
+
+
+def resolve_auto_runtime(device: str = "cpu") -> tuple[str, str, str]:
+    """``(kind, precision, reason)`` of ``runtime.kind=auto`` on this machine: OpenVINO in bf16 where the CPU has
+    bf16 instructions (:data:`BF16_FLAGS`) and the ``fast`` extra is installed, else PyTorch in fp32; ``reason``
+    says which fact decided, for ``summary.json``."""
+    if torch.device(device).type != "cpu":
+        return "torch", "fp32", f"device={device}: the exported runtimes run on the CPU"
+    have = sorted(cpu_flags() & set(BF16_FLAGS))
+    if not have:
+        return "torch", "fp32", f"this CPU has no bf16 instructions ({' or '.join(BF16_FLAGS)} not in its flags)"
+    missing = [name for name in (*EXPORT_PACKAGES, RUNTIME_PACKAGES["openvino"])
+               if importlib.util.find_spec(name) is None]
+    if missing:
+        return "torch", "fp32", (f"the CPU has {', '.join(have)} but the '{EXTRA}' extra is not installed "
+                                 f"({', '.join(missing)} missing: pip install \"dfvo[{EXTRA}]\")")
+    return "openvino", "bf16", f"the CPU has {', '.join(have)} and the '{EXTRA}' extra is installed"
 
 
 def check_precision(kind: str, precision: str, setting: str) -> None:
