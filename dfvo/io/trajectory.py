@@ -252,9 +252,21 @@ def read_trajectory(path: str | Path, format: str = "auto") -> Trajectory:
 
 
 def read_times(path: str | Path) -> np.ndarray:
-    """A KITTI ``times.txt``: one timestamp (s) a line -> ``(N,)`` float64."""
+    """A KITTI ``times.txt``: one timestamp (s) a line -> ``(N,)`` float64, strictly increasing (frame times that
+    repeat or go back would pair frames with the wrong ground truth without a word).
+
+    Raises:
+        ValueError: a malformed or non-finite line, or a time not after the one before (file and line named).
+    """
     path = Path(path)
-    return _parse(path, _data_lines(path), (1,), "one number (seconds)")[:, 0]
+    lines = _data_lines(path)
+    times = _parse(path, lines, (1,), "one number (seconds)")[:, 0]
+    back = np.flatnonzero(np.diff(times) <= 0)
+    if len(back):
+        k = int(back[0]) + 1
+        raise ValueError(f"{path}:{lines[k][0]}: time {times[k]:.9g} s is not after the line before "
+                         f"({times[k - 1]:.9g} s; {len(back)} such); expected one increasing time per frame")
+    return times
 
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:

@@ -3,6 +3,7 @@ detection, the streaming writer, and line-numbered errors for malformed files.""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -247,3 +248,18 @@ def test_evo_and_we_read_the_real_files_alike(kitti00, kitti00_times) -> None:
         assert len(ours) == 4541 and ours.frame_ids is None and ours.timestamps is None
         assert np.array_equal(ours.poses, np.stack(fi.read_kitti_poses_file(str(kitti00[key])).poses_se3))
     assert kitti00_times.shape == (4541,) and np.all(np.diff(kitti00_times) > 0)
+
+
+def test_frame_times_must_increase(tmp_path: Path) -> None:
+    """Issue 42 (what you read is checked): a times file whose times repeat or go back (two exports concatenated, a
+    clock reset) is refused in one line naming the file and the line; it paired frames with the wrong ground truth."""
+    from dfvo.io.trajectory import read_times
+
+    good = tmp_path / "good.txt"
+    good.write_text("0.0\n0.1\n0.2\n")
+    np.testing.assert_array_equal(read_times(good), [0.0, 0.1, 0.2])
+    for name, text, line in (("back.txt", "0.0\n0.1\n0.05\n0.2\n", 3), ("same.txt", "# times\n0.0\n0.1\n0.1\n", 4)):
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}:{line}: time .* is not after the line before"):
+            read_times(path)
