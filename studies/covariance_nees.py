@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from dfvo.geometry.pose_covariance import covariance_from_row, nees, step_error
+from dfvo.tracking.covariance import uncorrelated
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -64,9 +65,7 @@ def evaluate(out: Path, gt_path: Path | None, inflation: float, drop_correlation
             continue
         C = C * inflation
         if drop_correlation and tracker in ("E", "PnP"):  # what tracker.covariance.correlated=false writes
-            C = C.clone()
-            C[:3, 3:] = 0.0
-            C[3:, :3] = 0.0
+            C = uncorrelated(C)
         e = step_error(torch.from_numpy(np.linalg.inv(pred[k - 1]) @ pred[k]),
                        torch.from_numpy(np.linalg.inv(gt[k - 1]) @ gt[k]))
         per.setdefault(tracker, []).append((nees(e, C), nees(e[:3], C[:3, :3]), nees(e[3:], C[3:, 3:])))

@@ -119,6 +119,10 @@ def _to_array(im: Image.Image, source: str | Path = "") -> np.ndarray:
 
 
 TWELVE_BIT_MAX = 4095
+EXIF_ORIENTATION = 0x0112
+EXIF_TURNS = {2: "mirrored", 3: "rotated 180 degrees", 4: "flipped", 5: "transposed", 6: "rotated 90 degrees",
+              7: "transversed", 8: "rotated 270 degrees"}
+_NOTED: set[tuple[str, str]] = set()
 
 
 def sixteen_bit_to_unit(raw: np.ndarray, source: str | Path = "") -> np.ndarray:
@@ -133,7 +137,6 @@ def sixteen_bit_to_unit(raw: np.ndarray, source: str | Path = "") -> np.ndarray:
         _note_once(source, "12bit", "16-bit image with values up to %d: read as 12-bit data (divided by 4095, not "
                    "65535, which left it nearly black)", peak)
     return raw.astype(np.float32) * np.float32(1.0 / full)
-_NOTED: set[tuple[str, str]] = set()
 
 
 def _note_once(source: str | Path, kind: str, message: str, *args: object) -> None:
@@ -158,9 +161,21 @@ def _check_orientation(im: Image.Image, source: str | Path) -> None:
                    orientation, EXIF_TURNS.get(orientation, "turned"))
 
 
-EXIF_ORIENTATION = 0x0112
-EXIF_TURNS = {2: "mirrored", 3: "rotated 180 degrees", 4: "flipped", 5: "transposed", 6: "rotated 90 degrees",
-              7: "transversed", 8: "rotated 270 degrees"}
+def _decode(file: str | Path | io.BytesIO, source: str | Path, what: str) -> np.ndarray:
+    """An image file (a path, or its bytes) decoded now (so truncated files fail here) by :func:`_to_array`, its EXIF
+    orientation checked; ``source`` names it in the notes, ``what`` in the error.
+
+    Raises:
+        DatasetError: not a complete PNG or JPEG file.
+    """
+    try:
+        with Image.open(file) as im:
+            im.load()
+            arr = _to_array(im, source)
+            _check_orientation(im, source)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        raise DatasetError(f"cannot {what}: expected a complete PNG or JPEG file ({err})") from err
+    return arr
 
 
 def _to_chw(arr: np.ndarray, size: tuple[int, int] | None) -> torch.Tensor:
@@ -201,13 +216,7 @@ def read_image(path: str | Path, *, size: tuple[int, int] | None = None,
         DatasetError: the file is not a decodable image, is truncated, or is not ``expected_size``.
     """
     path = require_file(path, "image")
-    try:
-        with Image.open(path) as im:
-            im.load()  # decodes now, so truncated files fail here
-            arr = _to_array(im, path)
-            _check_orientation(im, path)
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
-        raise DatasetError(f"cannot read image {path}: expected a complete PNG or JPEG file ({err})") from err
+    arr = _decode(path, path, f"read image {path}")
     if expected_size is not None and tuple(arr.shape[:2]) != tuple(expected_size):
         raise DatasetError(f"image {path} is {arr.shape[0]}x{arr.shape[1]}, expected "
                            f"{expected_size[0]}x{expected_size[1]} (the size of the first frame)")
@@ -220,13 +229,7 @@ def decode_image(data: bytes, what: str, *, size: tuple[int, int] | None = None)
     Raises:
         DatasetError: not a complete PNG or JPEG (the message names ``what``).
     """
-    try:
-        with Image.open(io.BytesIO(data)) as im:
-            im.load()
-            arr = _to_array(im)
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
-        raise DatasetError(f"cannot decode {what}: expected a complete PNG or JPEG image ({err})") from err
-    return _to_chw(arr, size)
+    return _to_chw(_decode(io.BytesIO(data), what, f"decode {what}"), size)
 
 
 def array_to_image(arr: np.ndarray, *, size: tuple[int, int] | None = None) -> torch.Tensor:

@@ -275,6 +275,18 @@ class _Drive:
         return self.load((self.left if camera == "left" else self.right)[i])
 
 
+def open_drives(root: str | Path, drives: list[str] | None = None, *, stereo: bool = True,
+                size: tuple[int, int] | None = None, held_out: Sequence[str] = ()) -> list[_Drive]:
+    """The drives under ``root`` (``drives`` by name, or all but ``held_out``) with their file lists, calibration,
+    oxts poses and timestamps; ``stereo``: the right camera too (image_03, P_rect_03); ``size``: the (height,
+    width) frames are read at (None: native). :class:`KittiRawSnippets` and a monocular inference run read them.
+
+    Raises:
+        DatasetNotFoundError, DatasetError: as :class:`KittiRawSnippets`.
+    """
+    return [_Drive(d, stereo, size) for d in _find_drives(require_dir(root, "KITTI raw root"), drives, held_out)]
+
+
 class KittiRawSnippets(Dataset):
     """Training samples from KITTI raw drives: frame i of camera 2 with i±1 and/or its camera-3 partner.
 
@@ -306,7 +318,7 @@ class KittiRawSnippets(Dataset):
         self.root = require_dir(root, "KITTI raw root")
         size = check_working_size(height, width, f"KittiRawSnippets({self.root})")
         self.stereo, self.temporal = stereo, temporal
-        self.drives = [_Drive(d, stereo, size) for d in _find_drives(self.root, drives, held_out)]
+        self.drives = open_drives(self.root, drives, stereo=stereo, size=size, held_out=held_out)
         if cache_dir is not None:
             for drive in self.drives:
                 drive.use_cache(cache_dir)

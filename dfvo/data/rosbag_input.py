@@ -13,8 +13,8 @@ Convention:
       Stamps that are all zero (a driver that does not stamp) are replaced by the bag's receive times, with a
       warning.
     - Pixels: ``mono8``/``8UC1``, ``mono16``/``16UC1``, ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``, ``rgb16``, ``bgr16``
-      and the 8-bit Bayer mosaics ``bayer_rggb8``, ``bayer_bggr8``, ``bayer_gbrg8``, ``bayer_grbg8`` (bilinear
-      demosaicking, :func:`debayer`) become (3,H,W) float32 RGB in [0,1] exactly as
+      and the 8-bit Bayer mosaics ``bayer_rggb8``, ``bayer_bggr8``, ``bayer_gbrg8``, ``bayer_grbg8`` (kornia's
+      bilinear demosaicking, :func:`debayer`) become (3,H,W) float32 RGB in [0,1] exactly as
       :func:`dfvo.data.image_io.array_to_image` converts the same pixels (8-bit / 255, 16-bit / 65535 or 12-bit
       data / 4095, grey replicated); a ``CompressedImage`` (JPEG, PNG) is decoded by Pillow as a file of the same bytes
       (:func:`dfvo.data.image_io.decode_image`). So a frame equals the PNG of its pixels read by ``data=folder``.
@@ -253,38 +253,20 @@ def _close_readers(readers: list[Any]) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ pixels
-def _convolve3(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """``x`` (H,W) correlated with a 3x3 kernel, zero padding."""
-    p = np.pad(x, 1)
-    h, w = x.shape
-    out = np.zeros_like(x)
-    for dy in range(3):
-        for dx in range(3):
-            if kernel[dy, dx]:
-                out += kernel[dy, dx] * p[dy:dy + h, dx:dx + w]
-    return out
-
-
-_BOX = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], dtype=np.float32)
-_CROSS = np.array([[0, 1, 0], [1, 4, 1], [0, 1, 0]], dtype=np.float32)
+# ROS names a mosaic by the colours of its top-left 2x2 block, row by row; kornia's CFA names the same mosaics the
+# other way round (checked: every interior pixel equals the normalised-convolution demosaicking of the sampled values)
+KORNIA_CFA = {"rggb": "BG", "bggr": "RG", "gbrg": "GR", "grbg": "GB"}
 
 
 def debayer(raw: np.ndarray, pattern: str) -> np.ndarray:
-    """Bilinear demosaicking of an (H,W) Bayer mosaic; ``pattern`` names the colours of the top-left 2x2 block row
-    by row (``rggb``, ``bggr``, ``gbrg``, ``grbg``). Returns (H,W,3) float32 RGB in the raw's units: each sampled
-    value is kept, each missing one is the mean of its nearest samples of that colour (normalised convolution,
-    so the borders use the samples that exist)."""
-    x = raw.astype(np.float32)
-    h, w = x.shape
-    out = np.empty((h, w, 3), dtype=np.float32)
-    for c, colour in enumerate("rgb"):
-        mask = np.zeros((h, w), dtype=np.float32)
-        for k, name in enumerate(pattern):
-            if name == colour:
-                mask[k // 2::2, k % 2::2] = 1.0
-        kernel = _CROSS if colour == "g" else _BOX
-        out[..., c] = _convolve3(x * mask, kernel) / _convolve3(mask, kernel)
-    return out
+    """Bilinear demosaicking of an (H,W) Bayer mosaic (H and W even) by :func:`kornia.color.raw_to_rgb`; ``pattern``
+    names the colours of the top-left 2x2 block row by row (``rggb``, ``bggr``, ``gbrg``, ``grbg``). Returns (H,W,3)
+    float32 RGB in the raw's units: each sampled value is kept, each missing one is the mean of its nearest samples
+    of that colour."""
+    from kornia.color import CFA, raw_to_rgb
+
+    x = torch.from_numpy(np.ascontiguousarray(raw, dtype=np.float32))[None, None]
+    return raw_to_rgb(x, CFA[KORNIA_CFA[pattern]])[0].permute(1, 2, 0).contiguous().numpy()
 
 
 def image_array(msg: Any, what: str) -> np.ndarray:
@@ -306,6 +288,9 @@ def image_array(msg: Any, what: str) -> np.ndarray:
     if h <= 0 or w <= 0 or step < row or data.size < h * step:
         raise DatasetError(f"{what}: {data.size} bytes for a {w}x{h} {encoding} image with step {step}; expected "
                            f"step >= {row} and at least height * step = {h * max(step, row)} bytes")
+    if layout in KORNIA_CFA and (h % 2 or w % 2):
+        raise DatasetError(f"{what}: a {w}x{h} {encoding} mosaic; expected an even width and height (whole 2x2 "
+                           "Bayer blocks)")
     rows = np.ascontiguousarray(data[: h * step].reshape(h, step)[:, :row])
     arr = rows.view(np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")).reshape(h, w, channels)
     arr = arr.astype(np.dtype(dtype), copy=False)

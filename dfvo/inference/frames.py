@@ -25,7 +25,7 @@ import torch
 from dfvo.data.euroc import open_euroc
 from dfvo.data.image_folder import ImageFolder
 from dfvo.data.kitti_odometry import KittiOdometry, selects_kitti_odometry
-from dfvo.data.kitti_raw import KittiRawSnippets
+from dfvo.data.kitti_raw import open_drives
 from dfvo.data.pose_check import checked_poses
 from dfvo.data.rosbag_input import open_rosbag
 from dfvo.data.sequence import FrameSequence
@@ -295,11 +295,11 @@ class _OffsetWorld:
 
 def _kitti_raw(root: str, seq: str | None, sel: slice) -> FrameSequence:
     drives = [seq] if seq is not None else None
-    ds = KittiRawSnippets(root, None, None, drives=drives, stereo=False, temporal=True)  # the left camera
-    if len(ds.drives) != 1:
-        names = [d.dir.name for d in ds.drives]
+    found = open_drives(root, drives, stereo=False)  # the left camera alone
+    if len(found) != 1:
+        names = [d.dir.name for d in found]
         raise ValueError(f"data=kitti_raw under {root}: {names} drives found; choose one with seq=DRIVE")
-    drive = ds.drives[0]
+    drive = found[0]
     ids = list(range(len(drive.left)))[sel]
     poses = drive.poses[ids] if drive.poses is not None else None
     stamps = drive.timestamps[ids] if drive.timestamps is not None else None

@@ -35,7 +35,7 @@ from dfvo.geometry.essential_refine import skew
 from dfvo.geometry.pose_covariance import antisymmetric_vee, symmetric
 
 __all__ = ["step_covariance", "essential_normal_covariance", "essential_step_covariance", "pnp_step_covariance",
-           "length_log_variance", "constant_motion_covariance", "truncated_sigma"]
+           "length_log_variance", "constant_motion_covariance", "truncated_sigma", "uncorrelated"]
 
 MIN_INLIERS = 8
 
@@ -324,10 +324,15 @@ def step_covariance(tracker: str | None, T_cur_prev: torch.Tensor | None, T_prev
                                   cfg.scale_filter.cnn_log_std ** 2, ccfg.inflation, backwards=backwards)
     if cov is None or not bool(torch.isfinite(cov).all()):
         return constant_motion_covariance(T_prev_cur, ccfg)
-    if not ccfg.correlated:  # the rotation and translation blocks alone (tracker.covariance.correlated)
-        cov = cov.clone()
-        cov[:3, 3:] = 0.0
-        cov[3:, :3] = 0.0
+    return cov if ccfg.correlated else uncorrelated(cov)
+
+
+def uncorrelated(cov: torch.Tensor) -> torch.Tensor:
+    """A copy of a (6,6) step covariance with its rotation-translation cross blocks zeroed (the blocks alone:
+    ``tracker.covariance.correlated=false``)."""
+    cov = cov.clone()
+    cov[:3, 3:] = 0.0
+    cov[3:, :3] = 0.0
     return cov
 
 

@@ -11,7 +11,13 @@ import torch
 from PIL import Image
 
 from dfvo.data.image_io import DatasetError, DatasetNotFoundError, read_image
-from dfvo.data.kitti_raw import KittiRawSnippets, imu_to_camera, oxts_camera_poses, oxts_to_imu_poses
+from dfvo.data.kitti_raw import (
+    KittiRawSnippets,
+    imu_to_camera,
+    open_drives,
+    oxts_camera_poses,
+    oxts_to_imu_poses,
+)
 from dfvo.geometry.camera import resize_intrinsics
 
 DATE, DRIVE = "2011_09_26", "2011_09_26_drive_0001_sync"
@@ -265,4 +271,6 @@ def test_monocular_drive_without_right_camera_or_imu_calibration(tmp_path: Path,
     with caplog.at_level("WARNING", "dfvo.data"):
         ds = KittiRawSnippets(tmp_path, None, None, stereo=False, temporal=True)
     assert len(ds) == 1 and ds.drives[0].poses is None and ds.drives[0].baseline is None
+    drive = open_drives(tmp_path, stereo=False)[0]  # what a monocular inference run opens
+    assert len(drive.left) == 3 and drive.right is None and drive.poses is None
     assert "calib_imu_to_velo.txt" in caplog.text and "has no ground truth" in caplog.text

@@ -356,6 +356,10 @@ def test_bayer_is_demosaicked(scene: dict) -> None:
     err = np.abs(out - rgb).mean()
     wrong = np.abs(debayer(mosaic, "bggr") - rgb).mean()
     assert err < 6 and wrong > 3 * err, (err, wrong)
+    from dfvo.data.rosbag_input import image_array
+
+    with pytest.raises(DatasetError, match=r"^odd: a \d+x\d+ bayer_rggb8 mosaic; expected an even width and height"):
+        image_array(m.image(np.ascontiguousarray(mosaic[:-1]), "bayer_rggb8", T0), "odd")
 
 
 def test_camera_info_binning_roi_distortion_and_overrides(scene: dict, caplog: pytest.LogCaptureFixture) -> None:
