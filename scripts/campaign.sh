@@ -148,10 +148,22 @@ snapshot() {  # the resumable state of each unfinished run, when small (< 50 MB:
 case "${1:-status}" in
   start)
     if pid="$(running_pid)"; then echo "campaign: already running (pid $pid); log $LOG"; exit 0; fi
+    # a Python without the project's packages would fail in the background after start returned: check it here
+    if ! "$PYTHON" -c "import hydra, lightning, torch" 2>/dev/null; then
+      echo "campaign: PYTHON=$PYTHON cannot import hydra, lightning and torch; activate the project's venv or set" \
+           "PYTHON=/path/to/venv/bin/python" >&2
+      exit 2
+    fi
     mkdir -p "$RUNS"
     nohup "$0" run > /dev/null 2>&1 &
-    sleep 1
-    echo "campaign: started (pid $(cat "$PIDFILE" 2>/dev/null || echo "?")); log $LOG; 'scripts/campaign.sh status'"
+    sleep 5
+    if ! pid="$(running_pid)"; then  # every run finished, or the first one failed at once
+      echo "campaign: the queue ended at once; its last lines:" >&2
+      tail -n 5 "$LOG" >&2
+      if tail -n 5 "$LOG" | grep -q "failed"; then exit 1; fi
+      exit 0
+    fi
+    echo "campaign: started (pid $pid); log $LOG; 'scripts/campaign.sh status'"
     ;;
   run) run_queue ;;
   status) status ;;

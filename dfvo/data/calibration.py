@@ -19,6 +19,9 @@ import torch
 from dfvo.data.image_io import DatasetError, require_file
 from dfvo.data.intrinsics_check import check_matrix
 
+# the KITTI recording car's cameras above the road, metres (Geiger et al. 2013's setup; odometry and raw alike)
+KITTI_CAMERA_HEIGHT = 1.65
+
 
 class CalibValues(dict):
     """``{key: float64 vector}`` of a calibration file, remembering each key's line and the non-numeric lines.

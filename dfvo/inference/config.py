@@ -21,6 +21,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from dfvo.data.calibration import KITTI_CAMERA_HEIGHT
 from dfvo.data.kitti_odometry import selects_kitti_odometry
 from dfvo.eval.alignment import AlignMode
 from dfvo.sources.config import DepthSourceConfig, FlowSourceConfig
@@ -119,7 +120,7 @@ class KittiOdomDataConfig(DataConfig):
     kind: str = "kitti_odom"
     root: str | None = None
     camera: str = "auto"
-    camera_height: float | None = 1.65  # the KITTI cars' camera above the road
+    camera_height: float | None = KITTI_CAMERA_HEIGHT
 
 
 @dataclass
@@ -129,7 +130,7 @@ class KittiRawDataConfig(DataConfig):
 
     kind: str = "kitti_raw"
     root: str | None = None
-    camera_height: float | None = 1.65  # the KITTI cars' camera above the road
+    camera_height: float | None = KITTI_CAMERA_HEIGHT
 
 
 @dataclass

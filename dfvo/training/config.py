@@ -90,6 +90,14 @@ class DepthModelConfig:
         w_depth_hints: weight of the depth-hint loss (Watson et al. 2019): at every scale, ``log(1 + |D - H|)``
             where the batch's stereo-matcher depth ``H`` (``data.depth_hints=true``) reprojects the stereo partner
             with a lower photometric error than the network's depth ``D`` does any source view (0: off).
+        w_camera_height: weight of the camera-height loss (:mod:`dfvo.losses.road_height`): at every scale, the
+            log-depth L1 of the road pixels against the plane at the sample's known ``camera_height`` (the data's
+            ``data.camera_height``: real KITTI samples), the plane's tilt and pixels from the network's own depth
+            (the tracker's road band, ``tracker.road_plane`` defaults) (0: off).
+        freeze_bn: keep the depth and pose networks' batch-norm layers in inference mode while training (their
+            running statistics stay those of ``init_from``; their scales and shifts still learn): a fine-tune on
+            small batches that mix real and synthetic images otherwise normalises each batch by its own mix, and the
+            network it exports (running statistics) is not the one the losses trained.
         automask: monodepth2's identity reprojection mask.
         min_depth, max_depth: depth range (metres). init_depth: initial depth of the disparity heads (metres; null:
             sigmoid 0.5); 10 m gives the stereo term a gradient from step 0.
@@ -113,6 +121,8 @@ class DepthModelConfig:
     w_consistency: float = 0.0
     w_depth_supervised: float = 0.0
     w_depth_hints: float = 0.0
+    w_camera_height: float = 0.0
+    freeze_bn: bool = False
     automask: bool = True
     min_depth: float = 0.1
     max_depth: float = 100.0
@@ -131,7 +141,7 @@ class DepthModelConfig:
             raise ValueError(f"model.task={self.task!r}; the depth schema (model/schema/depth) trains task 'depth'")
         if not (self.stereo or self.temporal):
             raise ValueError("model: at least one of model.stereo / model.temporal must be true")
-        for key in ("w_smooth", "w_consistency", "w_depth_supervised", "w_depth_hints"):
+        for key in ("w_smooth", "w_consistency", "w_depth_supervised", "w_depth_hints", "w_camera_height"):
             if getattr(self, key) < 0:
                 raise ValueError(f"model.{key}={getattr(self, key)}; expected >= 0")
         if self.w_depth_hints > 0 and not self.stereo:

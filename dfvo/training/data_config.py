@@ -19,6 +19,7 @@ from typing import ClassVar
 
 from omegaconf import MISSING
 
+from dfvo.data.calibration import KITTI_CAMERA_HEIGHT
 from dfvo.data.held_out import HELD_OUT_DRIVES
 from dfvo.validation import positive
 
@@ -110,7 +111,8 @@ class KittiRawTrainDataConfig(TrainDataConfig):
     split's 28 test drives and drive 0005, :data:`dfvo.data.held_out.HELD_OUT_DRIVES`; a run that names one in
     ``drives`` trains on it and says so). ``depth_hints``: add each target frame's stereo-matcher depth
     (``depth_hint``, :mod:`dfvo.data.stereo_hints`; computed once into ``frame_cache_dir``) for
-    ``model.w_depth_hints``."""
+    ``model.w_depth_hints``. ``camera_height``: the cameras' height above the road in metres (KITTI's car:
+    1.65), carried by every sample as ``camera_height`` for ``model.w_camera_height``; null: none."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
@@ -121,6 +123,7 @@ class KittiRawTrainDataConfig(TrainDataConfig):
     frame_cache_dir: str | None = None
     held_out_drives: list[str] = field(default_factory=lambda: list(HELD_OUT_DRIVES))
     depth_hints: bool = False
+    camera_height: float | None = KITTI_CAMERA_HEIGHT
 
 
 @dataclass
@@ -139,7 +142,8 @@ class KittiOdomTrainDataConfig(TrainDataConfig):
 @dataclass
 class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     """``data=kitti_raw_synthetic``: KITTI raw drives and synthetic worlds in one training set (``frame_skips``
-    applies to both; ``frame_cache_dir`` as ``data=kitti_raw``)."""
+    applies to both; ``frame_cache_dir`` and ``camera_height`` as ``data=kitti_raw``, the height for the KITTI samples
+    alone: the worlds' samples have their exact depth)."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
@@ -148,6 +152,7 @@ class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     drives: list[str] | None = None
     frame_cache_dir: str | None = None
     held_out_drives: list[str] = field(default_factory=lambda: list(HELD_OUT_DRIVES))
+    camera_height: float | None = KITTI_CAMERA_HEIGHT
 
 
 def _training_seeds() -> list[int]:

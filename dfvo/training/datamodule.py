@@ -54,9 +54,9 @@ log = logging.getLogger("dfvo.training")
 
 
 # keys a sample may lack, filled with the value that means "none here" for the others of its batch: true depth
-# (synthetic worlds) is <= 0 where there is none (dfvo.losses.depth_supervision), so a mixed KITTI + synthetic batch
-# supervises its synthetic samples
-FILL_MISSING = {"depth": 0.0}
+# (synthetic worlds) is <= 0 where there is none (dfvo.losses.depth_supervision), and so is a camera height (KITTI
+# samples; dfvo.losses.road_height)
+FILL_MISSING = {"depth": 0.0, "camera_height": 0.0}
 
 
 def collate_common_keys(samples: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -150,9 +150,9 @@ class DFVODataModule(L.LightningDataModule):
         hints = getattr(data, "depth_hints", False)  # data=kitti_raw only
         try:
             if skips == [1]:
-                return KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo, temporal=True,
-                                        cache_dir=cache, held_out=data.held_out_drives,
-                                        hints=hints)
+                return self._with_height(KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo,
+                                                          temporal=True, cache_dir=cache, held_out=data.held_out_drives,
+                                                          hints=hints), data)
             # KittiRawSnippets has no gap: its frame-level form (temporal=False) needs stereo=True, so snippets with
             # gaps read the right images too (dropped below for models without stereo)
             frames = KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=True, temporal=False,
@@ -164,7 +164,14 @@ class DFVODataModule(L.LightningDataModule):
         for index, (drive, _) in enumerate(frames.samples):
             sequences.setdefault(drive, []).append(index)
         snippets = SkipSnippets(frames, list(sequences.values()), skips)
-        return snippets if stereo else _DropKeys(snippets, ("image_right", "T_right_left"))
+        return self._with_height(snippets if stereo else _DropKeys(snippets, ("image_right", "T_right_left")), data)
+
+    @staticmethod
+    def _with_height(dataset: Dataset, data: KittiRawTrainDataConfig | KittiRawSyntheticTrainDataConfig) -> Dataset:
+        """``dataset`` whose samples carry the rig's ``camera_height`` (() float32, metres) when the data gives one."""
+        if data.camera_height is None:
+            return dataset
+        return _AddKeys(dataset, {"camera_height": torch.tensor(float(data.camera_height))})
 
     def _kitti_odom(self, data: KittiOdomTrainDataConfig) -> Dataset:
         root = data_root(data)
@@ -288,3 +295,16 @@ class _DropKeys(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         return {k: v for k, v in self.dataset[i].items() if k not in self.keys}
+
+
+class _AddKeys(Dataset):
+    """``dataset`` with constant sample keys added (the same tensor for every sample)."""
+
+    def __init__(self, dataset: Dataset, keys: dict[str, torch.Tensor]) -> None:
+        self.dataset, self.keys = dataset, keys
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {**self.dataset[i], **{k: v.clone() for k, v in self.keys.items()}}

@@ -19,7 +19,10 @@ ground truth, e.g. a real sample of a mixed batch; sky clamped to ``max_depth``)
 the weight is > 0 (default 0: the paper's self-supervised loss alone), plus ``model.w_depth_hints`` x the depth-hint
 loss (Watson et al. 2019): ``log(1 + |D_s - H|)`` averaged over the image, counted at the pixels where the batch's
 stereo-matcher depth ``H`` (``depth_hint``, 0: none) reprojects the stereo partner with a lower SSIM+L1 error than
-the scale's depth ``D_s`` reaches with any source view.
+the scale's depth ``D_s`` reaches with any source view, plus ``model.w_camera_height`` x the camera-height loss
+(:func:`dfvo.losses.road_height.road_height_log_l1`): the road pixels of the tracker's road band, those on the plane
+fitted to the scale-0 depth (no gradient through the fit), held at the sample's known ``camera_height`` (KITTI samples;
+0: none).
 """
 
 from __future__ import annotations
@@ -33,14 +36,18 @@ import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
 from dfvo.eval.depth_metrics import DEPTH_METRIC_NAMES, compute_depth_metrics
+from dfvo.geometry.two_view import normalise_points
 from dfvo.io.checkpoint import find_checkpoint, load_weights, read_state_dict
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.depth_supervision import log_depth_l1
 from dfvo.losses.photometric import INVALID_ERROR, min_over_views, ssim_l1_error
 from dfvo.losses.reprojection import reproject
+from dfvo.losses.road_height import road_height_log_l1
 from dfvo.losses.smoothness import edge_aware_smoothness
 from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth
 from dfvo.models.pose_net import PoseNet
+from dfvo.tracking.config import RoadPlaneConfig
+from dfvo.tracking.ground_plane import fit_road_plane, road_grid
 from dfvo.training.augment import augment_depth_batch
 from dfvo.training.config import DepthModelConfig, typed
 from dfvo.training.hparams import recorded_config
@@ -71,6 +78,7 @@ class DepthPoseModule(L.LightningModule):
         self.automask = m.automask
         self.w_depth_supervised = m.w_depth_supervised
         self.w_depth_hints = m.w_depth_hints
+        self.w_camera_height = m.w_camera_height
         self.min_depth, self.max_depth = m.min_depth, m.max_depth
         self.lr, self.lr_drop_fraction = m.lr, m.lr_drop_fraction
         self.log_images_every = m.log_images_every
@@ -100,6 +108,24 @@ class DepthPoseModule(L.LightningModule):
                                                     "from random weights", path)
             return
         load_weights(self.pose_net, path, "pose network PoseNet", "model.init_from", task="depth")
+
+    def train(self, mode: bool = True) -> DepthPoseModule:
+        """The train/eval switch; with ``model.freeze_bn`` the batch-norm layers stay in inference mode."""
+        super().train(mode)
+        if mode:
+            self._freeze_batch_norm()
+        return self
+
+    def on_train_start(self) -> None:
+        # Lightning starts fitting without calling train() (a new module is in training mode) and restores each
+        # submodule's own mode after validation, so the batch-norm layers are set once here
+        self._freeze_batch_norm()
+
+    def _freeze_batch_norm(self) -> None:
+        if self.model_cfg.freeze_bn:
+            for module in self.modules():
+                if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                    module.eval()
 
     # ---------------------------------------------------------------- forward
     def forward(self, image: torch.Tensor) -> torch.Tensor:
@@ -161,6 +187,11 @@ class DepthPoseModule(L.LightningModule):
         if self.automask:
             identity = list((ssim_l1_error(image_all, srcs, self.alpha) + 1e-5).split(B))
         hint = self._hint_reprojection(batch, sources) if self.w_depth_hints > 0 else None
+        road = None
+        if self.w_camera_height > 0 and "camera_height" in batch:
+            depth0 = disp_to_depth(F.interpolate(disps[0], size=(H, W), mode="bilinear", align_corners=False),
+                                   self.min_depth, self.max_depth)
+            road = self._road_plane(depth0, K, batch["camera_height"].float())
         terms: dict[str, torch.Tensor] = {}
         total = image.new_zeros(())
         vis: dict[str, torch.Tensor] = {}
@@ -207,10 +238,40 @@ class DepthPoseModule(L.LightningModule):
                 sup, _ = log_depth_l1(depth, batch["depth"], self.max_depth)
                 loss_s = loss_s + self.w_depth_supervised * sup
                 terms[f"depth_supervised_s{s}"] = sup.detach()
+            if road is not None:
+                normal, on_road = road
+                height_loss, _ = road_height_log_l1(depth, K, normal, on_road, batch["camera_height"].float())
+                loss_s = loss_s + self.w_camera_height * height_loss
+                terms[f"camera_height_s{s}"] = height_loss.detach()
+                if s == 0:
+                    terms["road_pixels"] = on_road.float().sum().detach() / B
             terms[f"loss_s{s}"] = loss_s.detach()
             total = total + loss_s / len(SCALES)
         vis["disp"] = disps[0].detach()
         return total, terms, vis
+
+    @torch.no_grad()
+    def _road_plane(self, depth: torch.Tensor, K: torch.Tensor, camera_height: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The road plane of the network's own depth (B,1,H,W) in the tracker's road band (every pixel of it;
+        ``tracker.road_plane`` defaults): its normal (B,3) and the pixels on it (B,1,H,W) bool, none for a sample
+        without a ``camera_height`` (> 0) or whose fit fails. The RANSAC draws are seeded by the global step and the
+        sample, so a resumed run draws the same."""
+        rp = RoadPlaneConfig()
+        B, _, H, W = depth.shape
+        px = road_grid(H, W, rp.min_row_fraction, rp.max_row_fraction, rp.max_col_offset_fraction, 1).to(depth.device)
+        u, v = px[:, 0].long(), px[:, 1].long()
+        z = depth[:, 0, v, u].to(torch.float64)  # (B,M)
+        rays = normalise_points(px[None].expand(B, -1, -1), K.to(torch.float64))
+        X = torch.cat([rays, torch.ones_like(rays[..., :1])], -1) * z[..., None]
+        seed = int(self.global_step) * 1009
+        plane = fit_road_plane(X, (z > 0) & (z < self.max_depth) & (camera_height > 0)[:, None],
+                               threshold=rp.threshold, max_tilt_deg=rp.max_tilt_deg, min_inliers=rp.min_inliers,
+                               trials=rp.trials, quantile=rp.quantile,
+                               generators=[torch.Generator().manual_seed(seed + b) for b in range(B)])
+        on_road = torch.zeros_like(depth, dtype=torch.bool)
+        on_road[:, 0, v, u] = plane.inliers
+        return plane.normal.to(depth.dtype), on_road
 
     @torch.no_grad()
     def _hint_reprojection(self, batch: dict[str, torch.Tensor], sources: list[tuple[str, torch.Tensor, torch.Tensor]]

@@ -45,3 +45,16 @@ def test_queue_runs_resumes_skips_and_stops_at_a_failure(tmp_path: Path) -> None
     assert (runs / "third" / "finished.json").is_file()
     status = _campaign(runs, queue, "status").stdout
     assert "campaign: not running" in status and "first: finished" in status and "third: finished" in status
+
+
+def test_start_refuses_a_python_without_the_project(tmp_path: Path) -> None:
+    """A PYTHON that cannot import the project's packages is refused by `start` in one line naming it, before anything
+    runs in the background (a queue that failed there would be found only in the log)."""
+    runs, queue = tmp_path / "runs", tmp_path / "queue"
+    queue.write_text(f"first  {TINY}\n")
+    env = {**os.environ, "DFVO_RUNS_DIR": str(runs), "CAMPAIGN_QUEUE": str(queue), "CAMPAIGN_CODE": str(REPO),
+           "PYTHON": "/bin/false"}
+    res = subprocess.run(["bash", str(REPO / "scripts" / "campaign.sh"), "start"], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2 and "PYTHON=/bin/false cannot import" in res.stderr
+    assert not (runs / "campaign.pid").exists() and not (runs / "first").exists()

@@ -94,7 +94,8 @@ def test_kitti_odom_snippets_with_frame_skips(kitti_odom_root: Path) -> None:
 
 
 def test_kitti_raw_snippets_with_frame_skips(kitti_raw_root: Path) -> None:
-    """Gap 1 of data.frame_skips=[1,2] gives exactly KittiRawSnippets' own snippets; gap 2 the frames i-2, i+2."""
+    """Gap 1 of data.frame_skips=[1,2] gives exactly KittiRawSnippets' own snippets (plus the rig's camera height,
+    data.camera_height); gap 2 the frames i-2, i+2."""
     from dfvo.data.kitti_raw import KittiRawSnippets
     root = kitti_raw_root.parent
     own = KittiRawSnippets(root, 64, 96, stereo=True, temporal=True)
@@ -104,7 +105,8 @@ def test_kitti_raw_snippets_with_frame_skips(kitti_raw_root: Path) -> None:
     assert len(ds) == n + (n - 2)
     for i in (0, n - 1):
         a, b = ds[i], own[i]
-        assert set(a) == set(b) | {"frame_skip"}
+        assert set(a) == set(b) | {"frame_skip", "camera_height"}
+        assert float(a["camera_height"]) == pytest.approx(1.65)
         for key in b:
             assert torch.equal(a[key], b[key]), key
     gap2 = ds[n]  # frames (0, 2, 4)

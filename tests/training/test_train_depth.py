@@ -322,3 +322,24 @@ def test_depth_hints_reprojection_and_loss() -> None:
     loss, terms, _ = module._losses({**batch, "depth_hint": batch["depth"]})
     assert torch.isfinite(loss) and {"depth_hints_s0", "depth_hints_used_s3"} <= set(terms)
     assert 0 < float(terms["depth_hints_used_s0"]) <= 1
+
+
+@pytest.mark.parametrize("freeze", [True, False])
+def test_freeze_bn_keeps_the_running_statistics(tmp_path: Path, freeze: bool) -> None:
+    """model.freeze_bn=true: two training steps (with a validation between) leave every batch-norm layer's running
+    statistics as initialised and the layers in inference mode, while the weights still learn; false: they move."""
+    cfg = _cfg(tmp_path, "model=depth_stereo", "data=synthetic", "data.max_train_samples=1", "trainer.max_epochs=2",
+               "model.monitor=null", f"model.freeze_bn={str(freeze).lower()}", "name=fbn")
+    out = run_training(cfg)
+    assert out["global_step"] == 2
+    after = out["module"].depth_net.state_dict()
+    # a new network's statistics are mean 0 and variance 1 (the training starts from random weights)
+    stats = {k: v for k, v in after.items() if k.endswith(("running_mean", "running_var"))}
+    moved = [k for k, v in stats.items() if not torch.equal(v, torch.zeros_like(v) if k.endswith("mean")
+                                                               else torch.ones_like(v))]
+    bn = [m for m in out["module"].modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    assert stats and bn
+    if freeze:
+        assert not moved and not any(m.training for m in bn)
+    else:
+        assert len(moved) == len(stats)
