@@ -397,6 +397,13 @@ class GateConfig:
         max_consecutive: after this many frames in a row that a gate sent to constant motion the next result is
             accepted (a wrong expectation cannot hold forever); the default, 1 s at 10 Hz, rides out a truck that
             fills the view for longer than a few frames (docs/scale.md).
+        adaptive_sigmas: the length ratio and the direction change allowed widen to this many robust standard
+            deviations of the sequence's own frame-to-frame changes (of the log length between consecutive tracked
+            steps, and of their direction) when those are wider than the fixed limits above: a hand or a small robot
+            speeds up, stops and turns from one frame to the next, a car does not (its changes stay far inside the
+            fixed limits, which then apply unchanged). 0: the fixed limits alone.
+        adaptive_window, adaptive_min_changes: the changes are those of the last ``adaptive_window`` frames, used
+            once at least ``adaptive_min_changes`` of them are known.
     """
 
     enabled: bool = True
@@ -410,8 +417,15 @@ class GateConfig:
     min_inliers: int = 15
     min_inlier_fraction: float = 0.2
     max_consecutive: int = 10
+    adaptive_sigmas: float = 3.0
+    adaptive_window: int = 30
+    adaptive_min_changes: int = 8
 
     def __post_init__(self) -> None:
+        check(self.adaptive_sigmas >= 0 and int(self.adaptive_window) >= 2 and int(self.adaptive_min_changes) >= 1,
+              f"tracker.gate: adaptive_sigmas={self.adaptive_sigmas} (expected >= 0), adaptive_window="
+              f"{self.adaptive_window} (expected >= 2), adaptive_min_changes={self.adaptive_min_changes} (expected "
+              ">= 1)")
         check(self.max_length_ratio > 1.0, f"tracker.gate.max_length_ratio={self.max_length_ratio}; expected > 1")
         check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
                f"tracker.gate: length_window={self.length_window} (expected >= 1), max_consecutive="

@@ -19,8 +19,68 @@ import math
 import torch
 
 from dfvo.tracking.config import GateConfig
+from dfvo.tracking.ground_plane import MAD_TO_STD
 
-__all__ = ["image_parallax_px", "check_support", "check_length", "check_direction"]
+__all__ = ["image_parallax_px", "check_support", "check_length", "check_direction", "MotionSpread"]
+
+
+class MotionSpread:
+    """The sequence's own frame-to-frame changes of motion, and the gate limits they allow.
+
+    Over the last ``cfg.adaptive_window`` frames it keeps each tracked step's length and direction (None for a frame
+    that was not tracked); the changes are those between consecutive tracked steps: ``log(L_k / L_k-1)`` and the
+    angle between their directions (both longer than ``cfg.stop_length``, as the direction gate judges). Their
+    robust standard deviations (1.4826 x the median absolute log ratio about its median; 1.4826 x the median angle,
+    a half-normal's) times ``k = cfg.adaptive_sigmas`` widen the fixed limits, once ``cfg.adaptive_min_changes``
+    changes are known: ``length_ratio = max(cfg.max_length_ratio, exp(k sigma_log))``, ``direction_deg =
+    max(cfg.max_direction_change_deg, min(180, k sigma_deg))``.
+    """
+
+    def __init__(self, cfg: GateConfig) -> None:
+        self.cfg = cfg
+        self.steps: list[tuple[float, torch.Tensor] | None] = []
+
+    def reset(self) -> None:
+        self.steps = []
+
+    def add(self, length: float | None, direction: torch.Tensor | None) -> None:
+        """This frame's tracked step (``length`` m, unit ``direction`` (3,)), or None for an untracked frame."""
+        ok = length is not None and direction is not None and length > 0 and math.isfinite(length)
+        self.steps = (self.steps + [(float(length), direction.to(torch.float64)) if ok else None])[
+            -int(self.cfg.adaptive_window):]
+
+    def _changes(self) -> tuple[list[float], list[float]]:
+        logs, angles = [], []
+        for a, b in zip(self.steps[:-1], self.steps[1:]):
+            if a is None or b is None:
+                continue
+            logs.append(math.log(b[0] / a[0]))
+            if min(a[0], b[0]) <= self.cfg.stop_length:  # the direction gate judges longer motions only
+                continue
+            cos = float(a[1] @ b[1]) / max(float(a[1].norm() * b[1].norm()), 1e-12)
+            angles.append(math.degrees(math.acos(max(-1.0, min(1.0, cos)))))
+        return logs, angles
+
+    @property
+    def length_ratio(self) -> float:
+        """The length ratio the gate allows (at least ``cfg.max_length_ratio``)."""
+        logs, _ = self._changes()
+        cfg = self.cfg
+        if cfg.adaptive_sigmas <= 0 or len(logs) < int(cfg.adaptive_min_changes):
+            return cfg.max_length_ratio
+        t = torch.tensor(logs, dtype=torch.float64)
+        sigma = MAD_TO_STD * float((t - t.median()).abs().median())
+        return max(cfg.max_length_ratio, math.exp(min(cfg.adaptive_sigmas * sigma, 20.0)))
+
+    @property
+    def direction_deg(self) -> float:
+        """The direction change the gate allows (at least ``cfg.max_direction_change_deg``, at most 180)."""
+        _, angles = self._changes()
+        cfg = self.cfg
+        if cfg.adaptive_sigmas <= 0 or len(angles) < int(cfg.adaptive_min_changes):
+            return cfg.max_direction_change_deg
+        sigma = MAD_TO_STD * float(torch.tensor(angles, dtype=torch.float64).median())
+        return max(cfg.max_direction_change_deg, min(180.0, cfg.adaptive_sigmas * sigma))
 
 
 def image_parallax_px(pts_prev: torch.Tensor, pts_cur: torch.Tensor, R: torch.Tensor, K: torch.Tensor,
@@ -51,7 +111,8 @@ def check_support(kind: str, num_inliers: int, num_rows: int, cfg: GateConfig) -
 
 
 def check_length(kind: str, length: float, expected: float | None, cfg: GateConfig,
-                 image_motion_px: float | None = None, settled: bool = True) -> str | None:
+                 image_motion_px: float | None = None, settled: bool = True,
+                 max_ratio: float | None = None) -> str | None:
     """Why a translation of ``length`` metres from tracker ``kind`` is implausible given the ``expected`` length
     (None: no expectation yet, nothing is judged): more than ``cfg.max_length_ratio`` times ``max(expected,
     cfg.min_reference_length)``, or shorter than ``expected / cfg.max_length_ratio``, unless it is a stop: at most
@@ -59,11 +120,13 @@ def check_length(kind: str, length: float, expected: float | None, cfg: GateConf
     the selected correspondences, at most ``cfg.stop_flow_px``; None: not known, the length alone decides). A tracker
     locked onto a vehicle moving with the camera reports a "stop" while the static scene still streams past.
     ``settled``: false while the expectation rests on fewer than ``cfg.length_window`` lengths (a sequence's first
-    frames, whose scale may be far off): the wider ``cfg.warmup_length_ratio`` applies. None when plausible (or the
-    gates are off)."""
+    frames, whose scale may be far off): the wider ``cfg.warmup_length_ratio`` applies. ``max_ratio``: the ratio
+    allowed instead of ``cfg.max_length_ratio`` (the sequence's own, :class:`MotionSpread`). None when plausible (or
+    the gates are off)."""
     if not cfg.enabled or expected is None or not expected > 0:
         return None
-    ratio = cfg.max_length_ratio if settled else max(cfg.max_length_ratio, cfg.warmup_length_ratio)
+    base = cfg.max_length_ratio if max_ratio is None else max_ratio
+    ratio = base if settled else max(base, cfg.warmup_length_ratio)
     if length > ratio * max(expected, cfg.min_reference_length):
         return f"gate: {kind} translation {length:.3g} m > {ratio:g} x the expected {expected:.3g} m"
     still = image_motion_px is None or image_motion_px <= cfg.stop_flow_px
@@ -74,17 +137,18 @@ def check_length(kind: str, length: float, expected: float | None, cfg: GateConf
 
 
 def check_direction(kind: str, direction: torch.Tensor, expected: torch.Tensor | None, length: float,
-                    cfg: GateConfig) -> str | None:
+                    cfg: GateConfig, max_deg: float | None = None) -> str | None:
     """Why a translation along ``direction`` (3,) (``T_prev_cur``'s, in the earlier camera) is implausible given the
-    previous frame's ``expected`` direction (3,): more than ``cfg.max_direction_change_deg`` apart while both motions
-    are longer than ``cfg.stop_length`` (a vehicle cannot reverse or turn its motion that much between frames; an
-    E-tracker locked onto a large moving object does). None when plausible, unknown or the gates are off."""
+    previous frame's ``expected`` direction (3,): more than ``cfg.max_direction_change_deg`` (``max_deg`` when given:
+    the sequence's own, :class:`MotionSpread`) apart while both motions are longer than ``cfg.stop_length`` (a vehicle
+    cannot reverse or turn its motion that much between frames; an E-tracker locked onto a large moving object does).
+    None when plausible, unknown or the gates are off."""
     if not cfg.enabled or expected is None or length <= cfg.stop_length:
         return None
+    limit = cfg.max_direction_change_deg if max_deg is None else max_deg
     a, b = direction.to(torch.float64), expected.to(torch.float64)
     cos = float((a @ b) / (a.norm() * b.norm()).clamp_min(1e-12))
     angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-    if angle > cfg.max_direction_change_deg:
-        return f"gate: {kind} translation turns {angle:.0f} deg from the previous frame's (> " \
-               f"{cfg.max_direction_change_deg:g})"
+    if angle > limit:
+        return f"gate: {kind} translation turns {angle:.0f} deg from the previous frame's (> {limit:.3g})"
     return None

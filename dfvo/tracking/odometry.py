@@ -369,7 +369,8 @@ class VisualOdometry:
         rows = st.rows
         direction = -(R[0].transpose(0, 1) @ t[0])  # T_prev_cur's translation direction (E is never a stop: judged)
         support = self._gate(st, check_support("E", diag.num_inliers, int(rows.sum()), cfg.gate)
-                             or check_direction("E", direction, self.fusion.expected_direction, 1.0, cfg.gate))
+                             or check_direction("E", direction, self.fusion.expected_direction, 1.0, cfg.gate,
+                                                self.fusion.motion.direction_deg))
         if support is not None:
             return None, support
         failed = f"scale recovery failed (<= {cfg.scale.min_points} usable depth points)"
@@ -386,7 +387,7 @@ class VisualOdometry:
             return None, failed
         too_far = self._gate(st, check_length("E", s, self.fusion.expected_length, cfg.gate,
                                               image_parallax_px(pi[0][rows], pj[0][rows], R[0], K[0]),
-                                              self.fusion.expectation_settled))
+                                              self.fusion.expectation_settled, self.fusion.motion.length_ratio))
         if too_far is not None:
             predicted = None if st.estimate is None else st.estimate.predicted
             if predicted is None or not cfg.scale.temporal:
@@ -441,9 +442,9 @@ class VisualOdometry:
             reason = self._gate(st, check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
                                 or check_length("PnP", length, self.fusion.expected_length, cfg.gate,
                                                 image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K),
-                                                self.fusion.expectation_settled)
+                                                self.fusion.expectation_settled, self.fusion.motion.length_ratio)
                                 or check_direction("PnP", direction, self.fusion.expected_direction, length,
-                                                   cfg.gate))
+                                                   cfg.gate, self.fusion.motion.direction_deg))
             if reason is not None:
                 diag.add_reason(reason)
                 return None

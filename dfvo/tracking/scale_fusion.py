@@ -6,7 +6,8 @@ road plane among the triangulated points (``tracker.scale.camera_height``), the 
 decided (:meth:`ScaleFusion.end_frame`): the filter keeps the length used, and the pair's metric depths in its later
 image are kept for the next frame's relative scale. The plausibility gates' expected length is the median of the
 last ``gate.length_window`` tracked (not constant-motion) translation lengths (:attr:`ScaleFusion.expected_length`),
-their expected direction the last one's.
+their expected direction the last one's; the limits they are judged by widen with the sequence's own frame-to-frame
+changes (:class:`dfvo.tracking.gates.MotionSpread`, :attr:`ScaleFusion.motion`).
 
 Convention:
     One frame (B=1) at a time, in sequence order: ``R`` (1,3,3), ``t`` (1,3) unit ``T_cur_prev``; pixels (1,N,2)
@@ -26,6 +27,7 @@ from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
 from dfvo.tracking.camera_height import CameraHeight
 from dfvo.tracking.config import RoadPoints, TrackerConfig
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
+from dfvo.tracking.gates import MotionSpread
 from dfvo.tracking.ground_plane import fit_road_plane, parallax_deg, road_candidates, road_grid
 from dfvo.tracking.road_scale import align_road
 from dfvo.tracking.scale import triangulated_depths
@@ -100,6 +102,7 @@ class ScaleFusion:
         sc, sf = cfg.scale, cfg.scale_filter
         self.camera_height = CameraHeight(sc.camera_height, cfg.camera_height)
         self.filter = ScaleFilter.from_config(sf, temporal=sc.temporal, height_log_std=cfg.road_plane.log_std)
+        self.motion = MotionSpread(cfg.gate)  # the sequence's own changes of motion: the gates' widened limits
         self.reset()
 
     def reset(self) -> None:
@@ -112,6 +115,7 @@ class ScaleFusion:
         self._recent: list[float] = []
         self.expected_direction: torch.Tensor | None = None
         self.rejections = 0
+        self.motion.reset()
         self._height_unit: float | None = None
         self._prior = FilterState()
         self._height_observed = False
@@ -213,6 +217,8 @@ class ScaleFusion:
             self.filter.commit_length(length, prior.pxx ** 0.5 if prior.known else 1e3, prior)
         else:
             self.filter.commit_length(length, self.cfg.scale_filter.cnn_log_std, self.filter.prior())
+        self.motion.add(length if T_cur_prev is not None else None,
+                        T_prev_cur[:3, 3] / length if T_cur_prev is not None and length > 0 else None)
         if T_cur_prev is not None:
             self._recent = (self._recent + [length])[-int(self.cfg.gate.length_window):]
             # median of the last tracked lengths; until the window is full the gate judges it with its wider warm-up
