@@ -21,15 +21,24 @@ import torch
 from dfvo.tracking.config import GateConfig
 from dfvo.tracking.ground_plane import MAD_TO_STD
 
-__all__ = ["image_parallax_px", "check_support", "check_length", "check_direction", "MotionSpread"]
+__all__ = ["image_parallax_px", "check_support", "check_length", "check_direction", "angle_deg", "MotionSpread"]
+
+
+def angle_deg(a: torch.Tensor, b: torch.Tensor) -> float:
+    """The angle (degrees) between the vectors ``a`` and ``b`` (3,)."""
+    a, b = a.to(torch.float64), b.to(torch.float64)
+    cos = float((a @ b) / (a.norm() * b.norm()).clamp_min(1e-12))
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 class MotionSpread:
     """The sequence's own frame-to-frame changes of motion, and the gate limits they allow.
 
-    Over the last ``cfg.adaptive_window`` frames it keeps each tracked step's length and direction (None for a frame
-    that was not tracked); the changes are those between consecutive tracked steps: ``log(L_k / L_k-1)`` and the
-    angle between their directions (both longer than ``cfg.stop_length``, as the direction gate judges). Their
+    Over the last ``cfg.adaptive_window`` frames it keeps each tracked step's length and direction and whether it
+    was a stop (at most ``cfg.stop_length`` while the image shows at most ``cfg.stop_flow_px`` of parallax), None for
+    a frame that was not tracked; the changes are those between consecutive tracked steps that are not both stops
+    (a car waiting at a light: its lengths are noise): ``log(L_k / L_k-1)``, and the angle between their directions
+    when both are longer than ``cfg.stop_length`` (as the direction gate judges). Their
     robust standard deviations (1.4826 x the median absolute log ratio about its median; 1.4826 x the median angle,
     a half-normal's) times ``k = cfg.adaptive_sigmas`` widen the fixed limits, once ``cfg.adaptive_min_changes``
     changes are known: ``length_ratio = max(cfg.max_length_ratio, exp(k sigma_log))``, ``direction_deg =
@@ -38,27 +47,27 @@ class MotionSpread:
 
     def __init__(self, cfg: GateConfig) -> None:
         self.cfg = cfg
-        self.steps: list[tuple[float, torch.Tensor] | None] = []
+        self.steps: list[tuple[float, torch.Tensor, bool] | None] = []  # (length, direction, a stop)
 
     def reset(self) -> None:
         self.steps = []
 
-    def add(self, length: float | None, direction: torch.Tensor | None) -> None:
-        """This frame's tracked step (``length`` m, unit ``direction`` (3,)), or None for an untracked frame."""
+    def add(self, length: float | None, direction: torch.Tensor | None, parallax_px: float | None = None) -> None:
+        """This frame's tracked step (``length`` m, unit ``direction`` (3,), the image's parallax beyond the rotation
+        in pixels, None: unknown), or None for an untracked frame."""
         ok = length is not None and direction is not None and length > 0 and math.isfinite(length)
-        self.steps = (self.steps + [(float(length), direction.to(torch.float64)) if ok else None])[
+        stop = ok and length <= self.cfg.stop_length and (parallax_px is None or parallax_px <= self.cfg.stop_flow_px)
+        self.steps = (self.steps + [(float(length), direction.to(torch.float64), stop) if ok else None])[
             -int(self.cfg.adaptive_window):]
 
     def _changes(self) -> tuple[list[float], list[float]]:
         logs, angles = [], []
         for a, b in zip(self.steps[:-1], self.steps[1:]):
-            if a is None or b is None:
+            if a is None or b is None or (a[2] and b[2]):  # two stops in a row: both lengths are noise
                 continue
             logs.append(math.log(b[0] / a[0]))
-            if min(a[0], b[0]) <= self.cfg.stop_length:  # the direction gate judges longer motions only
-                continue
-            cos = float(a[1] @ b[1]) / max(float(a[1].norm() * b[1].norm()), 1e-12)
-            angles.append(math.degrees(math.acos(max(-1.0, min(1.0, cos)))))
+            if min(a[0], b[0]) > self.cfg.stop_length:  # the direction gate judges longer motions only
+                angles.append(angle_deg(a[1], b[1]))
         return logs, angles
 
     @property
@@ -146,9 +155,7 @@ def check_direction(kind: str, direction: torch.Tensor, expected: torch.Tensor |
     if not cfg.enabled or expected is None or length <= cfg.stop_length:
         return None
     limit = cfg.max_direction_change_deg if max_deg is None else max_deg
-    a, b = direction.to(torch.float64), expected.to(torch.float64)
-    cos = float((a @ b) / (a.norm() * b.norm()).clamp_min(1e-12))
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+    angle = angle_deg(direction, expected)
     if angle > limit:
         return f"gate: {kind} translation turns {angle:.0f} deg from the previous frame's (> {limit:.3g})"
     return None

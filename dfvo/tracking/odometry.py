@@ -300,8 +300,11 @@ class VisualOdometry:
         used_e = e_res is not None and diag.tracker == TrackerUsed.essential
         if diag.tracker != TrackerUsed.essential and diag.tracker != TrackerUsed.pnp:
             st.estimate = None  # an estimate of a tracker result that was not used
+        # the image's motion beyond the rotation, as the length gate measures it: tells a stop from a slow step
+        parallax = None if T_cur_prev is None else image_parallax_px(st.pts_prev[0][rows], st.pts_cur[0][rows],
+                                                                     T_cur_prev[:3, :3], st.K[0])
         self.fusion.end_frame(T_cur_prev, T_prev_cur, diag.tracker, st.estimate, st.pts_prev[0], st.pts_cur[0],
-                              rows & e_res.inliers[0] if used_e else rows, st.K[0])
+                              rows & e_res.inliers[0] if used_e else rows, st.K[0], parallax)
         gated_out = diag.gate_rejected and diag.tracker == TrackerUsed.constant_motion
         self.fusion.rejections = self.fusion.rejections + 1 if gated_out else 0
         if st.gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself

@@ -204,9 +204,10 @@ class ScaleFusion:
 
     def end_frame(self, T_cur_prev: torch.Tensor | None, T_prev_cur: torch.Tensor, tracker: TrackerUsed | None,
                   estimate: ScaleEstimate | None, pts_prev: torch.Tensor, pts_cur: torch.Tensor, rows: torch.Tensor,
-                  K: torch.Tensor) -> None:
+                  K: torch.Tensor, parallax_px: float | None = None) -> None:
         """After the frame's pose: ``T_cur_prev`` (4,4) tracked (None: constant motion), ``T_prev_cur`` the motion
-        used; ``estimate`` the fused scale when the E-tracker's pose was used with it; rows (N,) of (N,2) pixels."""
+        used; ``estimate`` the fused scale when the E-tracker's pose was used with it; rows (N,) of (N,2) pixels;
+        ``parallax_px`` the image's motion beyond the rotation (None: unknown; tells a stop for the gates' spread)."""
         self._height_observed = False
         length = float(T_prev_cur[:3, 3].norm())
         if tracker in (TrackerUsed.essential, TrackerUsed.pnp) and estimate is not None and estimate.scale is not None:
@@ -218,7 +219,7 @@ class ScaleFusion:
         else:
             self.filter.commit_length(length, self.cfg.scale_filter.cnn_log_std, self.filter.prior())
         self.motion.add(length if T_cur_prev is not None else None,
-                        T_prev_cur[:3, 3] / length if T_cur_prev is not None and length > 0 else None)
+                        T_prev_cur[:3, 3] / length if T_cur_prev is not None and length > 0 else None, parallax_px)
         if T_cur_prev is not None:
             self._recent = (self._recent + [length])[-int(self.cfg.gate.length_window):]
             # median of the last tracked lengths; until the window is full the gate judges it with its wider warm-up

@@ -47,18 +47,55 @@ def test_a_hands_changes_widen_the_limits_to_three_robust_sigmas() -> None:
     assert "(> 111)" in check_direction("E", _yaw(120), FORWARD, 1.0, cfg, spread.direction_deg)
 
 
+LOGS = [-0.4, -0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3, 0.4]  # nine changes: 3 robust sigmas = exp(0.8896) = 2.434
+
+
+def _feed(spread: MotionSpread, logs: list[float], gap_after: int | None = None) -> None:
+    length = 1.0
+    spread.add(length, FORWARD)
+    for k, d in enumerate(logs):
+        length *= math.exp(d)
+        spread.add(length, FORWARD)
+        if k == gap_after:
+            spread.add(None, None)
+
+
 def test_untracked_frames_break_the_pairs_and_few_changes_keep_the_fixed_limits() -> None:
-    cfg = GateConfig(adaptive_min_changes=3)
-    spread = MotionSpread(cfg)
-    for length in (1.0, 3.0, None, 1.0, 3.0, None, 1.0):  # two changes only: log 3 each, across no gap
-        spread.add(length, None if length is None else FORWARD)
-    assert spread.length_ratio == cfg.max_length_ratio
-    spread.add(0.5, FORWARD)  # a third change, log(0.5): changes [log 3, log 3, log 0.5], median log 3, MAD 0
-    assert spread.length_ratio == cfg.max_length_ratio
-    off = MotionSpread(GateConfig(adaptive_sigmas=0.0))
-    for k in range(20):
-        off.add(1.0 if k % 2 else 0.1, _yaw(90 * k))
-    assert off.length_ratio == 2.0 and off.direction_deg == 45.0
+    widened = math.exp(3 * 1.4826 * 0.2)
+    enough = MotionSpread(GateConfig(adaptive_min_changes=9))
+    _feed(enough, LOGS)
+    assert enough.length_ratio == pytest.approx(widened)
+    few = MotionSpread(GateConfig(adaptive_min_changes=10))
+    _feed(few, LOGS)
+    assert few.length_ratio == 2.0
+    broken = MotionSpread(GateConfig(adaptive_min_changes=9))
+    _feed(broken, LOGS, gap_after=3)  # the frame after the gap starts a new pair: 8 changes
+    assert broken.length_ratio == 2.0
+    off = MotionSpread(GateConfig(adaptive_sigmas=0.0, adaptive_min_changes=1))
+    _feed(off, LOGS)
+    assert off.length_ratio == 2.0
+
+
+def test_a_cars_stop_does_not_widen_the_length_gate_but_a_hands_short_steps_do() -> None:
+    """A car waits at a light: 20 steps of 2-50 mm of noise without parallax after 40 steps of 1 m; the gate keeps
+    its ratio 2 during the stop and after it. The same short steps with 3 px of parallax (a hand moving a few
+    centimetres) are motion: their spread widens it."""
+    g = torch.Generator().manual_seed(0)
+    noise = torch.exp(torch.empty(20).uniform_(math.log(0.002), math.log(0.05), generator=g)).tolist()
+    for parallax, widened in ((0.2, False), (3.0, True)):
+        spread = MotionSpread(GateConfig())
+        for _ in range(40):
+            spread.add(1.0, FORWARD)
+        ratios = []
+        for length in noise:
+            spread.add(length, FORWARD, parallax_px=parallax)
+            ratios.append(spread.length_ratio)
+        for _ in range(5):
+            spread.add(1.0, FORWARD)
+            ratios.append(spread.length_ratio)
+        assert (max(ratios) > 2.5) == widened
+        if not widened:
+            assert set(ratios) == {2.0}
 
 
 def test_short_steps_do_not_count_for_the_direction() -> None:

@@ -343,3 +343,6 @@ def test_freeze_bn_keeps_the_running_statistics(tmp_path: Path, freeze: bool) ->
         assert not moved and not any(m.training for m in bn)
     else:
         assert len(moved) == len(stats)
+    # the batch-norm scales and shifts learn either way (a new network's are 1 and 0)
+    assert any(not torch.equal(m.weight, torch.ones_like(m.weight)) or not torch.equal(m.bias, torch.zeros_like(m.bias))
+               for m in bn)
