@@ -47,20 +47,21 @@ class MotionSpread:
 
     def __init__(self, cfg: GateConfig) -> None:
         self.cfg = cfg
-        self.steps: list[tuple[float, torch.Tensor, bool] | None] = []  # (length, direction, a stop)
+        self.reset()
 
     def reset(self) -> None:
-        self.steps = []
+        self.steps: list[tuple[float, torch.Tensor, bool] | None] = []  # (length, direction, a stop)
+        self.length_ratio = self.cfg.max_length_ratio  # the length ratio the gate allows
+        self.direction_deg = self.cfg.max_direction_change_deg  # the direction change it allows (at most 180)
 
     def add(self, length: float | None, direction: torch.Tensor | None, parallax_px: float | None = None) -> None:
         """This frame's tracked step (``length`` m, unit ``direction`` (3,), the image's parallax beyond the rotation
-        in pixels, None: unknown), or None for an untracked frame."""
+        in pixels, None: unknown), or None for an untracked frame; updates :attr:`length_ratio` and
+        :attr:`direction_deg`."""
         ok = length is not None and direction is not None and length > 0 and math.isfinite(length)
         stop = ok and length <= self.cfg.stop_length and (parallax_px is None or parallax_px <= self.cfg.stop_flow_px)
         self.steps = (self.steps + [(float(length), direction.to(torch.float64), stop) if ok else None])[
             -int(self.cfg.adaptive_window):]
-
-    def _changes(self) -> tuple[list[float], list[float]]:
         logs, angles = [], []
         for a, b in zip(self.steps[:-1], self.steps[1:]):
             if a is None or b is None or (a[2] and b[2]):  # two stops in a row: both lengths are noise
@@ -68,28 +69,21 @@ class MotionSpread:
             logs.append(math.log(b[0] / a[0]))
             if min(a[0], b[0]) > self.cfg.stop_length:  # the direction gate judges longer motions only
                 angles.append(angle_deg(a[1], b[1]))
-        return logs, angles
+        k = self.cfg.adaptive_sigmas * MAD_TO_STD
+        log_spread = self._spread(logs, centred=True)
+        self.length_ratio = self.cfg.max_length_ratio if log_spread is None else \
+            max(self.cfg.max_length_ratio, math.exp(min(k * log_spread, 20.0)))
+        angle_spread = self._spread(angles, centred=False)
+        self.direction_deg = self.cfg.max_direction_change_deg if angle_spread is None else \
+            max(self.cfg.max_direction_change_deg, min(180.0, k * angle_spread))
 
-    @property
-    def length_ratio(self) -> float:
-        """The length ratio the gate allows (at least ``cfg.max_length_ratio``)."""
-        logs, _ = self._changes()
-        cfg = self.cfg
-        if cfg.adaptive_sigmas <= 0 or len(logs) < int(cfg.adaptive_min_changes):
-            return cfg.max_length_ratio
-        t = torch.tensor(logs, dtype=torch.float64)
-        sigma = MAD_TO_STD * float((t - t.median()).abs().median())
-        return max(cfg.max_length_ratio, math.exp(min(cfg.adaptive_sigmas * sigma, 20.0)))
-
-    @property
-    def direction_deg(self) -> float:
-        """The direction change the gate allows (at least ``cfg.max_direction_change_deg``, at most 180)."""
-        _, angles = self._changes()
-        cfg = self.cfg
-        if cfg.adaptive_sigmas <= 0 or len(angles) < int(cfg.adaptive_min_changes):
-            return cfg.max_direction_change_deg
-        sigma = MAD_TO_STD * float(torch.tensor(angles, dtype=torch.float64).median())
-        return max(cfg.max_direction_change_deg, min(180.0, cfg.adaptive_sigmas * sigma))
+    def _spread(self, values: list[float], centred: bool) -> float | None:
+        """The median absolute deviation of ``values`` about their median (``centred``) or about 0 (angles, a
+        half-normal's); None while there are fewer than ``cfg.adaptive_min_changes`` or the limits are fixed."""
+        if self.cfg.adaptive_sigmas <= 0 or len(values) < int(self.cfg.adaptive_min_changes):
+            return None
+        t = torch.tensor(values, dtype=torch.float64)
+        return float(((t - t.median()) if centred else t).abs().median())
 
 
 def image_parallax_px(pts_prev: torch.Tensor, pts_cur: torch.Tensor, R: torch.Tensor, K: torch.Tensor,
