@@ -9,7 +9,9 @@ For each network (``--weights``: the shipped ``checkpoints/depth.safetensors`` b
 - ``sgbm_06``: KITTI odometry 06 frames 0, 25, 50 against OpenCV SGBM stereo depth (lower 70 % of the image, 1-50 m):
   median relative error and median scale SGBM / prediction;
 - ``road_height``: the network's camera height above the road (the tracker's own estimator, default band) on KITTI
-  odometry 06 and 07 and KITTI raw 0001 and 0005 (true: 1.65 m).
+  odometry 06 and 07 and KITTI raw 0001 and 0005 (true: 1.65 m): the median over the frames and its robust spread
+  from frame to frame (1.4826 MAD / median; above ``tracker.camera_height.max_spread``, 15 %, a video without a
+  given camera height gets no estimate from it).
 
     python studies/depth_checks.py --weights dfvo/checkpoints/depth.safetensors RUNS/NAME/weights.safetensors
 """
@@ -66,7 +68,8 @@ def road_heights(weights: str) -> dict:
                             ("kitti_raw", SHARED / "kitti_raw", "2011_09_26_drive_0001"),
                             ("kitti_raw", SHARED / "kitti_raw_test", "2011_09_26_drive_0005")):
         band = network_heights(kind, str(root), seq, depth_checkpoint=weights)["bands"]["default"]
-        out[f"{kind} {seq}"] = None if band is None else {"median_m": band["median_m"], "vs_1.65": band["vs_1.65"]}
+        out[f"{kind} {seq}"] = None if band is None else {"median_m": band["median_m"], "vs_1.65": band["vs_1.65"],
+                                                          "spread": band["spread"]}
     return out
 
 

@@ -13,7 +13,11 @@ Convention:
       the arrival time since the source was opened.
     - The source ends (:attr:`StreamReader.ended_by`) with ``end`` (the stream said so), ``stalled`` (no data for
       ``timeout_s``), ``error`` (the connection was cut, the data cannot be decoded; :attr:`StreamReader.error`
-      says what) or ``closed`` (the consumer stopped).
+      says what) or ``closed`` (the consumer stopped). A ``tcp://`` source is read through a Python socket that
+      counts its bytes (:class:`CountingSocket`), so garbage is told from silence: a source that goes on sending
+      data none of which decodes as video ends as ``error`` naming that, not as ``stalled`` (FFmpeg's demuxer skips
+      such bytes without a word, and a read timeout would then fire as for silence). Other network protocols are
+      FFmpeg's own, without a byte count: garbage on them still ends as ``stalled``.
     - PyAV is an optional extra (``pip install "dfvo[video]"``); without it :func:`import_av` raises ``ImportError``
       naming it.
 """
@@ -24,6 +28,7 @@ import logging
 import os
 import queue
 import re
+import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -35,11 +40,12 @@ import numpy as np
 
 from dfvo.data.image_io import DatasetError
 
-__all__ = ["StreamFrame", "StreamReader", "resolve_url", "STREAM_HINT"]
+__all__ = ["StreamFrame", "StreamReader", "CountingSocket", "NoData", "Undecodable", "resolve_url", "STREAM_HINT"]
 
 log = logging.getLogger("dfvo.data")
 STREAM_HINT = 'data=stream needs PyAV: pip install "dfvo[video]"'
 QUEUE_FRAMES = 8  # frames buffered in non-realtime mode before the decoder waits
+GARBAGE_BYTES = 4096  # read since the last frame without a new one: the source sends data that is not video
 _END = object()
 
 
@@ -104,6 +110,7 @@ class StreamReader:
         self._pending_drops = 0
         self._queue: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
         self._finished = False
+        self._socket: CountingSocket | None = None  # a tcp:// source, read through a byte counter
 
     # ------------------------------------------------------------------------------------------ lifecycle
     def open(self) -> StreamReader:
@@ -115,11 +122,21 @@ class StreamReader:
         self._av = av
         if self.source.startswith("/dev/") and not os.path.exists(self.source):
             raise DatasetError(f"data.url={self.url}: no such camera device {self.source}")
+        tcp = re.fullmatch(r"tcp://\[?([^\]/?]+?)\]?:(\d+)/?", self.source)
         try:
-            self._container = av.open(self.source, format=self.input_format, options=self.options,
-                                      timeout=(self.timeout_s, self.timeout_s))
-        except av.error.FFmpegError as err:
-            raise DatasetError(f"data.url={self.url}: cannot open the stream ({_reason(err)}); expected a camera "
+            if tcp and not self.options:  # options (e.g. listen=1) need FFmpeg's own tcp protocol
+                self._socket = CountingSocket(tcp.group(1), int(tcp.group(2)), self.timeout_s, self._stop)
+                self._container = av.open(self._socket, format=self.input_format)
+                self._socket.open_deadline = None
+            else:
+                self._container = av.open(self.source, format=self.input_format, options=self.options,
+                                          timeout=(self.timeout_s, self.timeout_s))
+        except (av.error.FFmpegError, OSError) as err:
+            reason = _reason(err)
+            if self._socket is not None:
+                reason = _reason(self._socket.failure) if self._socket.failure is not None else reason
+                self._socket.close()
+            raise DatasetError(f"data.url={self.url}: cannot open the stream ({reason}); expected a camera "
                                "device, a stream URL FFmpeg reads, or a video file") from None
         if not self._container.streams.video:
             self._container.close()
@@ -169,7 +186,16 @@ class StreamReader:
                     self.ended_by = "closed"
                     break
             else:
-                self.ended_by = "end"
+                failure = None if self._socket is None else self._socket.failure
+                if isinstance(failure, NoData):
+                    self.ended_by = "closed" if self._stop.is_set() else "stalled"
+                    self.error = None if self._stop.is_set() else str(failure)
+                elif isinstance(failure, Undecodable):
+                    self.ended_by, self.error = "error", str(failure)
+                elif failure is not None:
+                    self.ended_by, self.error = "error", _reason(failure)
+                else:
+                    self.ended_by = "end"
         except av.error.ExitError:  # the interrupt callback of PyAV's timeout
             self.ended_by = "stalled"
             self.error = f"no data for {self.timeout_s:g} s"
@@ -186,6 +212,8 @@ class StreamReader:
                 container.close()
             except Exception:  # noqa: BLE001
                 pass
+            if self._socket is not None:
+                self._socket.close()
             self._finish()
 
     def _emit(self, decoded: Any) -> bool:
@@ -196,6 +224,8 @@ class StreamReader:
             stamp = frame.time if frame.time is not None else time.monotonic() - self._t0
             item = StreamFrame(frame.to_ndarray(format="rgb24"), float(stamp), self.received)
             self.received += 1
+            if self._socket is not None:
+                self._socket.mark()
             self._deliver(item)
         return not self._stop.is_set()
 
@@ -273,14 +303,103 @@ class StreamReader:
 
     def _stalled(self) -> None:
         if self.ended_by is None:
-            self.ended_by, self.error = "stalled", f"no frame for {2.0 * self.timeout_s:g} s"
+            garbage = self.undecodable()
+            self.ended_by = "error" if garbage else "stalled"
+            self.error = garbage or f"no frame for {2.0 * self.timeout_s:g} s"
         self._stop.set()
+
+    def undecodable(self) -> str | None:
+        """Why no frame came although the source kept sending, on one line (a ``tcp://`` source that sent
+        ``GARBAGE_BYTES`` or more since its last frame); None otherwise."""
+        return None if self._socket is None else self._socket.undecodable()
 
     def stats(self) -> dict[str, Any]:
         """What ``summary.json`` reports: frames received, handed out and dropped, and how the source ended."""
         return {"url": self.url, "realtime": self.realtime, "frames_received": self.received,
                 "frames_delivered": self.delivered, "frames_dropped": self.dropped, "ended_by": self.ended_by,
                 "error": self.error}
+
+
+class NoData(OSError):
+    """No byte arrived on a :class:`CountingSocket` for its timeout (or the reader was closed)."""
+
+
+class Undecodable(OSError):
+    """Bytes kept arriving on a :class:`CountingSocket` but no frame was decoded from them for its timeout."""
+
+
+class CountingSocket:
+    """A connected TCP socket as the read-only, non-seekable file PyAV reads a ``tcp://`` source from.
+
+    ``read(n)`` returns what arrived and counts it in ``bytes``. It ends the stream (b"", and ``failure`` says why:
+    :class:`NoData` or :class:`Undecodable`) when nothing arrived for ``timeout_s`` (or ``stop`` is set), or when
+    ``GARBAGE_BYTES`` or more arrived since the last :meth:`mark` (a decoded frame; not before the first one: a
+    stream joined mid-GOP may take seconds to its first keyframe) and ``timeout_s`` has passed.
+    It never raises into PyAV (whose read callback would print every exception after the first one).
+    """
+
+    def __init__(self, host: str, port: int, timeout_s: float, stop: threading.Event | None = None) -> None:
+        self.sock = socket.create_connection((host, port), timeout=timeout_s)
+        self.timeout_s = float(timeout_s)
+        self.stop = stop
+        self.bytes = 0
+        self.failure: OSError | None = None
+        # armed by the first decoded frame: before it, a stream may take a while to reach a keyframe
+        self._mark_bytes: int | None = None
+        self._mark_time = time.monotonic()
+        # while PyAV opens the source (probes its format), it gives up after timeout_s whatever arrives, as
+        # FFmpeg's own open timeout does; None once opened
+        self.open_deadline: float | None = self._mark_time + self.timeout_s
+
+    def mark(self) -> None:
+        """A frame was decoded: the bytes and time from which :class:`Undecodable` counts."""
+        self._mark_bytes, self._mark_time = self.bytes, time.monotonic()
+
+    def undecodable(self) -> str | None:
+        """One line when ``GARBAGE_BYTES`` or more arrived since the last mark, else None (also before the first)."""
+        if self._mark_bytes is None or self.bytes - self._mark_bytes < GARBAGE_BYTES:
+            return None
+        since = self.bytes - self._mark_bytes
+        return (f"{since} bytes arrived in the {time.monotonic() - self._mark_time:.0f} s since the last frame and "
+                "none decoded as video: the source sends data that is not its video stream (corrupt, or another "
+                "format)")
+
+    def readable(self) -> bool:
+        return True
+
+    def read(self, n: int = -1) -> bytes:
+        if self.failure is not None:
+            return b""
+        if self.stop is not None and self.stop.is_set():
+            self.failure = NoData("closed")
+            return b""
+        garbage = self.undecodable() if time.monotonic() - self._mark_time > self.timeout_s else None
+        if garbage:
+            self.failure = Undecodable(garbage)
+            return b""
+        if self.open_deadline is not None and time.monotonic() > self.open_deadline:
+            self.failure = (Undecodable(f"{self.bytes} bytes arrived in the first {self.timeout_s:g} s, while the "
+                                        "stream was being opened, and did not decode as one video stream: the source "
+                                        "sends data that is not its video stream (corrupt, or another format)")
+                            if self.bytes >= GARBAGE_BYTES
+                            else NoData(f"no data for {self.timeout_s:g} s"))
+            return b""
+        try:
+            data = self.sock.recv(n if n > 0 else 65536)
+        except TimeoutError:
+            self.failure = NoData(f"no data for {self.timeout_s:g} s")
+            return b""
+        except OSError as err:  # reset by the peer, ...: the connection was cut
+            self.failure = err
+            return b""
+        self.bytes += len(data)
+        return data
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError:
+            pass
 
 
 def _reason(err: Exception) -> str:

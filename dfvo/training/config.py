@@ -318,6 +318,9 @@ class TrainerConfig:
             whenever ``checkpoints/last.ckpt`` is written.
         keep_weights_every_n_steps: also keep ``RUN/weights_step{N}.safetensors`` every this many steps (null: none):
             a long run's intermediate networks, to compare afterwards.
+        ema_decay: export the exponential moving average of the network's weights (decay per step, e.g. 0.999)
+            instead of the raw weights (null: off); the average is kept in the checkpoint
+            (:mod:`dfvo.training.weight_average`).
         print_every_n_steps: one console (log) line with the step, rate, speed and logged training metrics every
             this many steps, and one per validation (0: none; for runs without a progress bar, e.g. in the
             background).
@@ -347,6 +350,7 @@ class TrainerConfig:
     keep_best: bool = True
     export_weights: bool = True
     keep_weights_every_n_steps: int | None = None
+    ema_decay: float | None = None
     print_every_n_steps: int = 0
     enable_progress_bar: bool = True
     progress_refresh: int = 10
@@ -361,6 +365,8 @@ class TrainerConfig:
         positive("trainer", checkpoint_every_n_steps=self.checkpoint_every_n_steps,
                   val_check_interval=self.val_check_interval,
                   keep_weights_every_n_steps=self.keep_weights_every_n_steps)
+        if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
+            raise ValueError(f"trainer.ema_decay={self.ema_decay}; expected a decay in (0, 1), e.g. 0.999, or null")
         if self.print_every_n_steps < 0:
             raise ValueError(f"trainer.print_every_n_steps={self.print_every_n_steps}; expected >= 0 (0: none)")
 

@@ -162,13 +162,15 @@ class DepthPoseModule(L.LightningModule):
         net = net_inputs or {}
         sources = self._sources(batch, net)
         temporal = [s for s in sources if s[0] != "stereo"]
+        # the depth network's input: with shadows cast (augment.shadow_prob) when drawn, else the jittered image
+        depth_input = net.get("image_depth", net.get("image", image))
         if self.w_consistency > 0:
             keys = {"prev": "image_prev", "next": "image_next"}
-            views = [net.get("image", image)] + [net.get(keys[s[0]], s[1]) for s in temporal]
+            views = [depth_input] + [net.get(keys[s[0]], s[1]) for s in temporal]
             disps_all = self.depth_net(torch.cat(views, 0))
             disps = {s: d[:B] for s, d in disps_all.items()}
         else:
-            disps = self.depth_net(net.get("image", image))
+            disps = self.depth_net(depth_input)
         with float32_losses(image.device):  # the networks may run under bf16 autocast; the losses never do
             return self._losses_from(batch, sources, disps, disps_all if self.w_consistency > 0 else None)
 

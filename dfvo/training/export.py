@@ -55,8 +55,14 @@ def weights_metadata(network_meta: dict[str, str], height: int | None, width: in
 def export_weights(module: L.LightningModule, path: str | Path, metadata: dict[str, str],
                    dtype: torch.dtype = torch.float16) -> Path:
     """Write ``module.export_network()``'s network to ``path`` (``.safetensors``, floats as ``dtype``, atomic) with
-    the network's own metadata and ``metadata`` (see :func:`weights_metadata`)."""
+    the network's own metadata and ``metadata`` (see :func:`weights_metadata`); with ``trainer.ema_decay`` the
+    moving average of its weights (:mod:`dfvo.training.weight_average`, metadata ``weights: ema DECAY``)."""
+    from dfvo.training.weight_average import averaged_network
+
     net, meta = module.export_network()
+    average = averaged_network(module)
+    if average is not None:
+        net, meta = average, {**meta, "weights": f"ema {module.weight_average.decay:g}"}
     return save_weights(net, path, {**meta, **metadata}, dtype=dtype)
 
 

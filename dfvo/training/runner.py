@@ -46,6 +46,7 @@ from dfvo.training.flow_data import FlowMixDataModule
 from dfvo.training.precision import resolve_precision
 from dfvo.training.resume import FINISHED_NAME, resume_point, write_finished
 from dfvo.training.stop_signals import StopOnSignal, TrainingInterrupted, stop_signals
+from dfvo.training.weight_average import WeightAverage
 
 __all__ = ["model_identity", "build_module", "build_datamodule", "check_checkpoint", "build_trainer", "run_folder",
            "run_training",
@@ -121,6 +122,8 @@ def build_trainer(cfg: DictConfig, run_dir: Path, has_validation: bool = True, o
     stopper = stopper if stopper is not None else StopOnSignal()
     stopper.last = last
     callbacks: list[Callback] = [last, NaNGuard(), ModelIdentity(identity), LoggedStepAfterResume(), stopper]
+    if t.ema_decay is not None:  # before the exports below: they write the average of this step
+        callbacks.insert(0, WeightAverage(t.ema_decay))
     if model.monitor and has_validation:
         if t.keep_best:
             callbacks.append(ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="best-{epoch}-{step}",

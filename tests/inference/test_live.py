@@ -62,15 +62,17 @@ def encode(sink: object, frames: list[np.ndarray], after_frame: object = None, p
 
 class LoopbackServer:
     """Serves ``frames`` to the first TCP client on 127.0.0.1 (``url``) from a thread: ``mode`` ``end`` (all, then a
-    proper end), ``cut`` (the connection closed after ``at`` frames) or ``stall`` (``at`` frames, then silence for
-    ``stall_s`` seconds, then closed)."""
+    proper end), ``cut`` (the connection closed after ``at`` frames), ``stall`` (``at`` frames, then silence for
+    ``stall_s`` seconds, then closed) or ``garbage`` (``at`` frames, then random bytes, 4 KB every 50 ms, for
+    ``stall_s`` seconds, then closed); ``period_s`` between frames."""
 
-    def __init__(self, frames: list[np.ndarray], mode: str = "end", at: int = 5, stall_s: float = 20.0) -> None:
+    def __init__(self, frames: list[np.ndarray], mode: str = "end", at: int = 5, stall_s: float = 20.0,
+                 period_s: float = 0.0) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.listen(1)
         self.url = f"tcp://127.0.0.1:{self.sock.getsockname()[1]}"
-        self.frames, self.mode, self.at, self.stall_s = frames, mode, at, stall_s
+        self.frames, self.mode, self.at, self.stall_s, self.period_s = frames, mode, at, stall_s, period_s
         self.sent = 0
         self.thread = threading.Thread(target=self._serve, daemon=True)
         self.thread.start()
@@ -85,11 +87,17 @@ class LoopbackServer:
             if self.mode != "end" and k + 1 == self.at:
                 if self.mode == "stall":
                     time.sleep(self.stall_s)
+                elif self.mode == "garbage":
+                    rng, until = np.random.default_rng(0), time.monotonic() + self.stall_s
+                    while time.monotonic() < until:
+                        sink.write(rng.integers(0, 256, 4096, dtype=np.uint8).tobytes())
+                        sink.flush()
+                        time.sleep(0.05)
                 return False
             return True
 
         try:
-            encode(sink, self.frames, after)
+            encode(sink, self.frames, after, self.period_s)
         except OSError:  # the client went away first
             pass
         finally:
@@ -166,22 +174,25 @@ def test_every_frame_when_not_realtime_and_the_poses_follow_the_drive(frames, in
 
 
 @needs_checkpoints
-@pytest.mark.parametrize("mode", ["cut", "stall"])
+@pytest.mark.parametrize("mode", ["cut", "stall", "garbage"])
 def test_a_cut_or_stalled_stream_ends_with_one_line_and_complete_outputs(frames, intrinsics, tmp_path: Path,
                                                                          mode: str, stream_infer) -> None:
-    """The server stops after 5 frames: closing the connection (cut) or going silent (stall, longer than
-    ``data.timeout_s``). The run ends with exit status 0, one line saying how the source ended, and outputs for
-    the 5 frames."""
+    """The server stops after 5 frames: closing the connection (cut), going silent (stall, longer than
+    ``data.timeout_s``) or sending bytes that are not video (garbage, the stream still being opened). The run ends
+    with exit status 0, one line saying how the source ended (garbage named as such, not as a stall), and outputs
+    for the 5 frames."""
     server = LoopbackServer(frames, mode=mode, at=5, stall_s=30.0)
     proc, out = stream_infer(f"data.url={server.url}", "data.realtime=false", "data.timeout_s=3", *intrinsics)
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary, rows, _ = check_outputs(out)
     stream = summary["stream"]
     assert stream["frames_tracked"] == 5 and stream["frames_received"] == 5
-    assert stream["ended_by"] == ("end" if mode == "cut" else "stalled")
+    assert stream["ended_by"] == {"cut": "end", "stall": "stalled", "garbage": "error"}[mode]
     lines = [ln for ln in (proc.stdout + proc.stderr).splitlines() if f"stream {server.url}" in ln]
     assert len(lines) == 1 and "5 frames tracked" in lines[0], proc.stdout[-2000:]
     assert (mode == "stall") == ("WARNING" in lines[0] and "no data for 3 s" in lines[0])
+    assert (mode == "garbage") == ("data that is not its video stream" in lines[0])
+    assert "Traceback" not in proc.stderr and "exception being dropped" not in proc.stderr
 
 
 @needs_checkpoints
@@ -238,6 +249,27 @@ def test_a_missing_extra_is_named_in_one_line(monkeypatch: pytest.MonkeyPatch) -
     with pytest.raises(ImportError, match=r"^data=stream needs PyAV: pip install \"dfvo\[video\]\"$"):
         StreamReader("tcp://127.0.0.1:1").open()
     assert "dfvo[video]" in STREAM_HINT
+
+
+@pytest.mark.slow  # ~10 s: a healthy stream first, then garbage
+def test_a_stream_that_turns_into_garbage_is_named_not_stalled() -> None:
+    """A tcp:// stream of 60 good frames (0.1 s apart) that then sends random bytes without pause: the reader
+    hands out the good frames and ends ``data.timeout_s`` after the last one as an ``error`` that says the bytes
+    kept coming and did not decode (not as ``stalled``: data was arriving), long before the server stops."""
+    from dfvo.data.stream import StreamReader
+
+    rng = np.random.default_rng(1)
+    imgs = [rng.integers(0, 255, (H, W, 3), dtype=np.uint8) for _ in range(70)]
+    server = LoopbackServer(imgs, mode="garbage", at=60, stall_s=40.0, period_s=0.1)
+    start = time.monotonic()
+    reader = StreamReader(server.url, realtime=False, timeout_s=4.0)
+    got = [f.index for f in reader]
+    reader.close()
+    took = time.monotonic() - start
+    assert got == list(range(len(got))) and len(got) >= 55
+    assert reader.ended_by == "error" and "none decoded as video" in reader.error, reader.error
+    assert int(reader.error.split()[0]) >= 4096  # the bytes that arrived since the last frame are counted
+    assert took < 6.0 + 4.0 + 8.0  # the frames, the timeout, slack: not the server's 40 s of garbage
 
 
 def test_realtime_reader_drops_all_but_the_latest_frame() -> None:

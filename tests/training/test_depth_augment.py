@@ -131,3 +131,71 @@ def test_depth_module_feeds_jittered_images_to_the_networks_and_plain_ones_to_th
     with torch.no_grad():
         plain, _, _ = module._losses(sample, None)
     assert not torch.allclose(loss, plain)  # the networks' inputs changed the prediction, not the loss targets
+
+
+def test_shadows_darken_only_the_drawn_samples_by_the_drawn_factor(batch: dict) -> None:
+    """A shadowed pixel keeps ``f`` of its light (f within shadow_factor), an unshadowed one all of it; samples not
+    drawn are returned as they are; the same generator seed gives the same shadows."""
+    from dfvo.training.augment import cast_shadows, shadow_masks
+
+    image = torch.cat([batch["image"]] * 8)
+    cfg = DepthAugmentConfig(shadow_prob=0.5, shadow_factor=(0.4, 0.6))
+    out = cast_shadows(image, cfg, torch.Generator().manual_seed(5))
+    assert torch.equal(out, cast_shadows(image, cfg, torch.Generator().manual_seed(5)))
+    ratio = torch.where(image > 0.05, out / image.clamp_min(1e-6), torch.ones_like(image))
+    assert ratio.min() >= 0.4 - 1e-6 and ratio.max() <= 1 + 1e-6
+    changed = (ratio < 0.999).flatten(1).any(1)
+    assert 0 < int(changed.sum()) < 8  # p = 0.5 over 8 samples with this seed: some, not all
+    for b in range(8):
+        if changed[b]:
+            darkest = float(ratio[b].min())
+            assert 0.4 - 1e-6 <= darkest <= 0.6 + 1e-3  # the shadow's core keeps f of the light
+            assert float((ratio[b] < 0.999).float().mean()) < 0.95  # a region, not the whole image
+        else:
+            assert torch.equal(out[b], image[b])
+    masks = shadow_masks(64, H, W, torch.Generator().manual_seed(0))
+    assert masks.min() >= 0 and masks.max() <= 1
+    cover = (masks > 0.5).flatten(1).float().mean(1)
+    assert float(cover.min()) > 0.0 and float(cover.median()) < 0.7  # every sample has a shadow, few cover it all
+    with pytest.raises(ValueError, match="model.augment.shadow_factor"):
+        DepthAugmentConfig(shadow_factor=(0.8, 0.3))
+    with pytest.raises(ValueError, match="model.augment.shadow_prob"):
+        DepthAugmentConfig(shadow_prob=2.0)
+
+
+def test_shadows_reach_the_depth_network_only_and_keep_the_other_draws(batch: dict) -> None:
+    """With shadow_prob > 0 the depth network sees ``image_depth`` (the jittered image with shadows), the pose
+    network and the losses the images without; flips and jitter are drawn as without shadows."""
+    from omegaconf import OmegaConf
+
+    from dfvo.training.depth_module import DepthPoseModule
+
+    plain_cfg = DepthAugmentConfig(flip_prob=0.5, jitter_prob=1.0)
+    shadow_cfg = DepthAugmentConfig(flip_prob=0.5, jitter_prob=1.0, shadow_prob=1.0)
+    out_a, net_a = augment_depth_batch(batch, plain_cfg, torch.Generator().manual_seed(2))
+    out_b, net_b = augment_depth_batch(batch, shadow_cfg, torch.Generator().manual_seed(2))
+    assert torch.equal(out_a["image"], out_b["image"]) and torch.equal(net_a["image"], net_b["image"])
+    assert "image_depth" not in net_a
+    assert (net_b["image_depth"] < net_b["image"] - 1e-3).any() and (net_b["image_depth"] <= net_b["image"]).all()
+
+    cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "stereo": True, "temporal": True,
+                                      "init_depth": 10.0,
+                                      "augment": {"flip_prob": 0.0, "jitter_prob": 0.0, "shadow_prob": 1.0}},
+                            "data": {"seed": 0}})
+    module = DepthPoseModule(cfg).eval()
+    sample = {k: batch[k] for k in ("image", "image_right", "image_next", "K", "T_right_left")}
+    sample["image_prev"] = batch["image_next"]
+    seen: dict[str, torch.Tensor] = {}
+
+    def record(name: str, position: int):
+        def hook(module: torch.nn.Module, args: tuple, output: object) -> None:
+            seen.setdefault(name, args[position])
+        return hook
+
+    module.depth_net.register_forward_hook(record("depth", 0))
+    module.pose_net.register_forward_hook(record("pose", 1))
+    with torch.no_grad():
+        module.training_step(sample, 0)
+    _, net = augment_depth_batch(sample, module.augment, torch.Generator().manual_seed(0))
+    assert torch.equal(seen["depth"], net["image_depth"])
+    assert torch.allclose(seen["pose"], sample["image"], atol=1e-6)  # no jitter, no shadow for the pose network

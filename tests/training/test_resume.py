@@ -128,3 +128,55 @@ def test_precision_auto_follows_the_cpu_flags(monkeypatch: pytest.MonkeyPatch) -
     assert chosen == "32-true" and "no bf16" in why
     assert resolve_precision("32-true", "cpu")[0] == "32-true"
     assert resolve_precision("bf16-mixed", "cpu")[0] == "bf16-mixed"
+
+
+def test_weight_average_follows_the_ema_formula() -> None:
+    """WeightAverage keeps avg <- d avg + (1 - d) w of the exported network, parameters and buffers, starting from
+    the weights of the first step (hand-computed with d = 0.5)."""
+    from types import SimpleNamespace
+
+    from dfvo.training.weight_average import WeightAverage, averaged_network
+
+    class Tiny(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.net = torch.nn.Sequential(torch.nn.Linear(2, 1), torch.nn.BatchNorm1d(1))
+
+        def export_network(self):
+            return self.net, {}
+
+    module = Tiny()
+    keeper = WeightAverage(0.5)
+    keeper.on_fit_start(SimpleNamespace(global_step=0), module)
+    values = [1.0, 3.0, 7.0]
+    for v in values:
+        with torch.no_grad():
+            module.net[0].weight.fill_(v)
+            module.net[1].running_mean.fill_(10 * v)
+        keeper.on_train_batch_end(None, module, None, None, 0)
+    avg = averaged_network(module)
+    expected = 0.5 * (0.5 * 1.0 + 0.5 * 3.0) + 0.5 * 7.0  # the first update copies, then the EMA
+    assert torch.allclose(avg[0].weight, torch.full_like(avg[0].weight, expected))
+    assert torch.allclose(avg[1].running_mean, torch.full_like(avg[1].running_mean, 10 * expected))
+    assert torch.equal(module.net[0].weight, torch.full_like(module.net[0].weight, 7.0))  # the raw weights stay
+    with pytest.raises(ValueError, match="trainer.ema_decay=1.5"):
+        WeightAverage(1.5)
+
+
+def test_ema_export_resumes_exactly_and_differs_from_the_raw_weights(tmp_path: Path) -> None:
+    """trainer.ema_decay: the exported weights.safetensors is the average (metadata ``weights: ema 0.5``), not the
+    raw weights; a run stopped at step 4 and resumed to step 6 exports the same average as the uninterrupted run
+    (the average is in the checkpoint)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    phases = "model.phases=[{name:sup,steps:6,lr:1.0e-3}]"
+    whole = run_training(_cfg(tmp_path, phases, "name=whole", "trainer.ema_decay=0.5"))
+    run_training(_cfg(tmp_path, phases, "name=part", "trainer.max_steps=4", "trainer.ema_decay=0.5"))
+    run_training(_cfg(tmp_path, phases, "name=part", "resume=auto", "trainer.ema_decay=0.5"))
+    a, b = (load_file(str(tmp_path / n / "weights.safetensors")) for n in ("whole", "part"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    with safe_open(str(tmp_path / "whole" / "weights.safetensors"), "pt") as f:
+        assert f.metadata()["weights"] == "ema 0.5" and f.metadata()["global_step"] == "6"
+    raw = {k: v.half() for k, v in whole["module"].export_network()[0].state_dict().items()}
+    assert any(not torch.equal(raw[k], a[k]) for k in a if a[k].is_floating_point())
