@@ -122,17 +122,23 @@ class StreamReader:
         self._av = av
         if self.source.startswith("/dev/") and not os.path.exists(self.source):
             raise DatasetError(f"data.url={self.url}: no such camera device {self.source}")
-        tcp = re.fullmatch(r"tcp://\[?([^\]/?]+?)\]?:(\d+)/?", self.source)
+        tcp = re.fullmatch(r"tcp://(?:\[([0-9A-Fa-f:.]+)\]|([^\[\]/?:]+)):(\d{1,5})/?", self.source)
         try:
-            if tcp and not self.options:  # options (e.g. listen=1) need FFmpeg's own tcp protocol
-                self._socket = CountingSocket(tcp.group(1), int(tcp.group(2)), self.timeout_s, self._stop)
+            if tcp and int(tcp.group(3)) <= 65535 and not self.options:  # options (listen=1, ...): FFmpeg's own tcp
+                self._socket = CountingSocket(tcp.group(1) or tcp.group(2), int(tcp.group(3)), self.timeout_s,
+                                              self._stop)
                 self._container = av.open(self._socket, format=self.input_format)
                 self._socket.open_deadline = None
+                if isinstance(self._socket.failure, Undecodable):  # data, but the probe was cut at the deadline
+                    raise OSError(str(self._socket.failure))
             else:
                 self._container = av.open(self.source, format=self.input_format, options=self.options,
                                           timeout=(self.timeout_s, self.timeout_s))
         except (av.error.FFmpegError, OSError) as err:
             reason = _reason(err)
+            if self._container is not None:
+                self._container.close()
+                self._container = None
             if self._socket is not None:
                 reason = _reason(self._socket.failure) if self._socket.failure is not None else reason
                 self._socket.close()
@@ -140,6 +146,8 @@ class StreamReader:
                                "device, a stream URL FFmpeg reads, or a video file") from None
         if not self._container.streams.video:
             self._container.close()
+            if self._socket is not None:
+                self._socket.close()
             raise DatasetError(f"data.url={self.url}: the source has no video stream")
         stream = self._container.streams.video[0]  # no frame threading: it holds frames back (latency)
         self.size = (int(stream.codec_context.height), int(stream.codec_context.width))
@@ -166,6 +174,10 @@ class StreamReader:
                 break
         if self._thread is not None:
             self._thread.join(timeout=self.timeout_s + 5.0)
+        elif self._container is not None:  # opened, never started: the decoding thread would have closed it
+            self._container.close()
+            if self._socket is not None:
+                self._socket.close()
         if self.ended_by is None:
             self.ended_by = "closed"
 
@@ -187,7 +199,9 @@ class StreamReader:
                     break
             else:
                 failure = None if self._socket is None else self._socket.failure
-                if isinstance(failure, NoData):
+                if self.ended_by is not None:  # the consumer ended it first (_stalled): its reason stands
+                    pass
+                elif isinstance(failure, NoData):
                     self.ended_by = "closed" if self._stop.is_set() else "stalled"
                     self.error = None if self._stop.is_set() else str(failure)
                 elif isinstance(failure, Undecodable):
@@ -224,9 +238,9 @@ class StreamReader:
             stamp = frame.time if frame.time is not None else time.monotonic() - self._t0
             item = StreamFrame(frame.to_ndarray(format="rgb24"), float(stamp), self.received)
             self.received += 1
-            if self._socket is not None:
-                self._socket.mark()
             self._deliver(item)
+            if self._socket is not None:  # after the hand-over: a slow consumer's wait is not time without frames
+                self._socket.mark()
         return not self._stop.is_set()
 
     def _flush(self, stream: Any) -> None:
@@ -378,9 +392,9 @@ class CountingSocket:
             self.failure = Undecodable(garbage)
             return b""
         if self.open_deadline is not None and time.monotonic() > self.open_deadline:
-            self.failure = (Undecodable(f"{self.bytes} bytes arrived in the first {self.timeout_s:g} s, while the "
-                                        "stream was being opened, and did not decode as one video stream: the source "
-                                        "sends data that is not its video stream (corrupt, or another format)")
+            self.failure = (Undecodable(f"{self.bytes} bytes arrived in the first {self.timeout_s:g} s and FFmpeg "
+                                        "found no complete video stream in them: data that is not video (corrupt, or "
+                                        "another format), or a stream slower to start than data.timeout_s")
                             if self.bytes >= GARBAGE_BYTES
                             else NoData(f"no data for {self.timeout_s:g} s"))
             return b""

@@ -70,7 +70,8 @@ class DepthAugmentConfig:
     shadow_factor: tuple[float, float] = (0.35, 0.75)
 
     def __post_init__(self) -> None:
-        lo, hi = (float(v) for v in self.shadow_factor)
+        values = list(self.shadow_factor)
+        lo, hi = (float(values[0]), float(values[1])) if len(values) == 2 else (-1.0, -1.0)
         if not 0.0 < lo <= hi <= 1.0:
             raise ValueError(f"model.augment.shadow_factor={list(self.shadow_factor)}; expected [low, high] with "
                              "0 < low <= high <= 1")
@@ -154,8 +155,8 @@ def shadow_masks(B: int, H: int, W: int, generator: torch.Generator, max_shapes:
     """(B,1,H,W) float64 in [0,1]: how much of each pixel lies in shadow (1 inside, 0 outside, a linear edge ramp
     0.5-3 px wide).
 
-    Each sample gets 1..``max_shapes`` shapes, each a half-plane through a random point at a random angle or an
-    ellipse (semi-axes 5-40 % of the width and 5-30 % of the height, random rotation) centred anywhere in the image;
+    Each sample gets 1..``max_shapes`` shapes, each the half-plane below a line through a random point at a random
+    angle (the side the line's normal, drawn in [0, pi), points to: the lower one, as on the ground) or an ellipse (semi-axes 5-40 % of the width and 5-30 % of the height, random rotation) centred anywhere in the image;
     the union is the per-pixel maximum.
     """
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")

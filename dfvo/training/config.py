@@ -367,6 +367,10 @@ class TrainerConfig:
                   keep_weights_every_n_steps=self.keep_weights_every_n_steps)
         if self.ema_decay is not None and not 0.0 < self.ema_decay < 1.0:
             raise ValueError(f"trainer.ema_decay={self.ema_decay}; expected a decay in (0, 1), e.g. 0.999, or null")
+        if self.ema_decay is not None and self.precision in (Precision.bf16, Precision.fp16):
+            raise ValueError(f"trainer.ema_decay={self.ema_decay} with trainer.precision={self.precision}: a moving "
+                             "average of half-precision weights stops moving (each step's change is below their "
+                             "resolution); use a mixed precision (bf16-mixed, 16-mixed) or 32-true")
         if self.print_every_n_steps < 0:
             raise ValueError(f"trainer.print_every_n_steps={self.print_every_n_steps}; expected >= 0 (0: none)")
 

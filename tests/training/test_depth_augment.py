@@ -161,6 +161,8 @@ def test_shadows_darken_only_the_drawn_samples_by_the_drawn_factor(batch: dict) 
         DepthAugmentConfig(shadow_factor=(0.8, 0.3))
     with pytest.raises(ValueError, match="model.augment.shadow_prob"):
         DepthAugmentConfig(shadow_prob=2.0)
+    with pytest.raises(ValueError, match="model.augment.shadow_factor"):
+        DepthAugmentConfig(shadow_factor=(0.5,))
 
 
 def test_shadows_reach_the_depth_network_only_and_keep_the_other_draws(batch: dict) -> None:

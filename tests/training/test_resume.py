@@ -161,6 +161,11 @@ def test_weight_average_follows_the_ema_formula() -> None:
     assert torch.equal(module.net[0].weight, torch.full_like(module.net[0].weight, 7.0))  # the raw weights stay
     with pytest.raises(ValueError, match="trainer.ema_decay=1.5"):
         WeightAverage(1.5)
+    from dfvo.training.config import TrainerConfig
+
+    with pytest.raises(ValueError, match="trainer.ema_decay=0.999 with trainer.precision=bf16-true"):
+        TrainerConfig(ema_decay=0.999, precision="bf16-true")
+    assert TrainerConfig(ema_decay=0.999, precision="bf16-mixed").ema_decay == 0.999
 
 
 def test_ema_export_resumes_exactly_and_differs_from_the_raw_weights(tmp_path: Path) -> None:
