@@ -156,8 +156,9 @@ def shadow_masks(B: int, H: int, W: int, generator: torch.Generator, max_shapes:
     0.5-3 px wide).
 
     Each sample gets 1..``max_shapes`` shapes, each the half-plane below a line through a random point at a random
-    angle (the side the line's normal, drawn in [0, pi), points to: the lower one, as on the ground) or an ellipse (semi-axes 5-40 % of the width and 5-30 % of the height, random rotation) centred anywhere in the image;
-    the union is the per-pixel maximum.
+    angle (the side the line's normal, drawn in [0, pi), points to: the lower one, as on the ground) or an ellipse
+    (semi-axes 5-40 % of the width and 5-30 % of the height, random rotation) centred anywhere in the image; the union
+    is the per-pixel maximum.
     """
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
     n_shapes = torch.randint(1, max_shapes + 1, (B,), generator=generator)
