@@ -28,6 +28,7 @@ CURB_HEIGHT = 0.15
 
 KIND_PAVEMENT, KIND_BUILDING, KIND_POLE, KIND_CAR = 1, 2, 3, 4
 KIND_BARRIER, KIND_RAIL, KIND_TERRAIN, KIND_FOLIAGE, KIND_SIGN, KIND_WALL = 5, 6, 7, 8, 9, 10
+KIND_PRINT = 11  # printed matter seen from close by (the hand-held world's walls, papers and books)
 SHAPE_BOX, SHAPE_ELLIPSOID = 0, 1
 DRAW_DISTANCE = 250.0  # objects whose nearest possible point is farther are not drawn (unless ``cull`` says so)
 

@@ -22,6 +22,7 @@ from dfvo.synthetic.scene import (
     KIND_FOLIAGE,
     KIND_PAVEMENT,
     KIND_POLE,
+    KIND_PRINT,
     KIND_RAIL,
     KIND_SIGN,
     KIND_TERRAIN,
@@ -37,6 +38,7 @@ from dfvo.synthetic.textures import (
     foliage,
     guard_rail,
     pavement,
+    printed,
     sign_panel,
     sky,
     terrain,
@@ -173,6 +175,10 @@ def _shade_objects(scene: Scene, views: list[View], sel: torch.Tensor, ids: torc
         take(h, k), take(y_up, k), take(width, k), 2 * take(half, k)[:, 1], take(color, k), take(seed, k),
         take(fp, k)))
     put((kind == KIND_SIGN) & (axis != 2), lambda k: torch.full((len(k), 3), 0.5, device=dev))
+    put((kind == KIND_PRINT) & ~top, lambda k: printed(take(h, k), take(y_up, k), take(color, k), take(seed, k),
+                                                       take(fp, k)))
+    put((kind == KIND_PRINT) & top, lambda k: printed(take(p, k)[:, 0], take(p, k)[:, 2], take(color, k),
+                                                      take(seed, k) + 1, take(fp, k)))
     if len(ell):
         # arc coordinates on the ellipsoid: azimuth about its vertical axis, elevation, both in metres
         pe, he = take(p, ell), take(half, ell)

@@ -252,3 +252,18 @@ def sign_panel(h: torch.Tensor, y_up: torch.Tensor, width: torch.Tensor, height:
     glyph = glyph * band(h, 0.35, width - 0.35, fp) * band(y_up, 0.3, height - 0.3, fp)
     white = torch.maximum(border, glyph)[:, None]
     return color * (1 - white) + 0.92 * white
+
+
+def printed(h: torch.Tensor, y_up: torch.Tensor, color: torch.Tensor, seed: torch.Tensor,
+            fp: torch.Tensor) -> torch.Tensor:
+    """(S,3) printed matter seen from close by (posters, book covers, papers on a desk), on surface coordinates
+    (h, y_up) in metres: a tinted paper with blotches down to millimetres and rows of dark "lettering" blocks
+    (2 cm lines, 1.2 cm characters) in some cells of a 12 cm grid."""
+    n = fbm(h, y_up, seed, 0.15, 7, fp)
+    cell = cell_random(torch.floor(h / 0.12), torch.floor(y_up / 0.12), seed)
+    text = (cell > 0.5).float()
+    glyph = (cell_random(torch.floor(h / 0.012), torch.floor(y_up / 0.02), seed + 5) > 0.45).float()
+    ink = text * glyph * band(torch.remainder(y_up, 0.02), 0.004, 0.016, fp) \
+        * band(torch.remainder(h, 0.012), 0.002, 0.010, fp)
+    paper = color * (0.55 + 0.9 * (n - 0.5))[:, None]
+    return paper * (1 - 0.8 * ink)[:, None]

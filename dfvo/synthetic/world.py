@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from dfvo.geometry.camera import intrinsics_matrix, resize_intrinsics
+from dfvo.synthetic.handheld import build_handheld_scene, make_handheld_trajectory
 from dfvo.synthetic.highway import make_highway_trajectory
 from dfvo.synthetic.highway_scene import build_highway_scene
 from dfvo.synthetic.render import SKY_DEPTH, View, camera_rays, cast, flow_between
@@ -49,8 +50,9 @@ class SyntheticWorld:
         noise_std: standard deviation of additive Gaussian sensor noise (images clamped to [0,1]).
         scenario: "drive" (mixed: drive, turn, still, rotation, planar, moving_car; see
             :meth:`segment_names`), one hard case alone: "still", "rotation", "planar", "moving_car",
-            "straight" (driving without turns), "city" (streets with a corner every block) or "highway"
-            (motorway with traffic, ~2-3 m/frame).
+            "straight" (driving without turns), "city" (streets with a corner every block), "highway"
+            (motorway with traffic, ~2-3 m/frame) or "handheld" (a camera moved by hand over a desk in the corner
+            of two walls, 0.3-0.8 m above the desk: :mod:`dfvo.synthetic.handheld`).
         speed: the camera's cruise speed in metres per frame, or a (lo, hi) range drawn per world (e.g.
             ``TRAINING_SPEED``). None: the scenario's default (street ~0.9-1.2, city ``CITY_SPEED``, highway
             ``HIGHWAY_SPEED``). On streets, setting it also draws the corner radius and turn rate (below) and
@@ -85,6 +87,9 @@ class SyntheticWorld:
         if scenario == "highway":
             self._traj = make_highway_trajectory(int(num_frames), self.seed, speed)
             self._scene = build_highway_scene(self._traj, self.seed)
+        elif scenario == "handheld":
+            self._traj = make_handheld_trajectory(int(num_frames), self.seed, speed)
+            self._scene = build_handheld_scene(self._traj, self.seed)
         else:
             self._traj = make_trajectory(scenario, int(num_frames), self.seed, speed, turn_rate)
             self._scene = build_scene(self._traj, self.seed)
@@ -110,7 +115,7 @@ class SyntheticWorld:
         return self._K.to(self.device, copy=True)
 
     def segment_names(self) -> list[str]:
-        """Per-frame segment name: drive, turn, still, rotation, planar, moving_car or highway."""
+        """Per-frame segment name: drive, turn, still, rotation, planar, moving_car, highway or handheld."""
         return list(self._traj.segments)
 
     def vehicle_poses(self, index: int) -> torch.Tensor:

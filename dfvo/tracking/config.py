@@ -404,6 +404,11 @@ class GateConfig:
             fixed limits, which then apply unchanged). 0: the fixed limits alone.
         adaptive_window, adaptive_min_changes: the changes are those of the last ``adaptive_window`` frames, used
             once at least ``adaptive_min_changes`` of them are known.
+        confirm_direction_frames: a direction the direction gate rejects is accepted once this many frames in a row
+            agree on it (each within ``max_direction_change_deg`` of the others; the earlier ones fell back to
+            constant motion): a hand turns for good from one frame to the next, where the gate would hold the old
+            direction for ``max_consecutive`` frames. null (the default): off; a car's E-tracker locked onto a truck
+            filling the view also agrees with itself for several frames.
     """
 
     enabled: bool = True
@@ -420,6 +425,7 @@ class GateConfig:
     adaptive_sigmas: float = 3.0
     adaptive_window: int = 30
     adaptive_min_changes: int = 8
+    confirm_direction_frames: int | None = None
 
     def __post_init__(self) -> None:
         check(self.adaptive_sigmas >= 0 and int(self.adaptive_window) >= 2 and int(self.adaptive_min_changes) >= 1,
@@ -430,6 +436,8 @@ class GateConfig:
         check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
                f"tracker.gate: length_window={self.length_window} (expected >= 1), max_consecutive="
                f"{self.max_consecutive} (expected >= 0)")
+        check(self.confirm_direction_frames is None or int(self.confirm_direction_frames) >= 2,
+              f"tracker.gate.confirm_direction_frames={self.confirm_direction_frames}; expected null (off) or >= 2")
         check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
                                                       f"{self.min_inlier_fraction}; expected [0, 1)")
 

@@ -48,7 +48,7 @@ from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
 from dfvo.tracking.covariance import length_log_variance, step_covariance
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.e_tracker import ETrackerResult, essential_scale, track_essential
-from dfvo.tracking.gates import check_direction, check_length, check_support, image_parallax_px
+from dfvo.tracking.gates import angle_deg, check_direction, check_length, check_support, image_parallax_px
 from dfvo.tracking.pnp_tracker import track_pnp
 from dfvo.tracking.scale import has_depth, iterative_scale, sample_depth
 from dfvo.tracking.scale_filter import ScaleEstimate
@@ -100,6 +100,7 @@ class FrameState:
         diagnostics: the frame's record, filled as it is decided.
         estimate: the fused scale the E pose used (None: no fusion, or not an E pose).
         gate_overruled: a gate's rejection was overruled (after ``gate.max_consecutive`` gated frames in a row).
+        gated_direction: the direction (3,) of this frame's result that the direction gate rejected (None: none).
     """
 
     pts_prev: torch.Tensor
@@ -120,6 +121,7 @@ class FrameState:
     diagnostics: FrameDiagnostics
     estimate: ScaleEstimate | None = None
     gate_overruled: bool = False
+    gated_direction: torch.Tensor | None = None
 
     @property
     def rows(self) -> torch.Tensor:
@@ -307,6 +309,9 @@ class VisualOdometry:
                               rows & e_res.inliers[0] if used_e else rows, st.K[0], parallax)
         gated_out = diag.gate_rejected and diag.tracker == TrackerUsed.constant_motion
         self.fusion.rejections = self.fusion.rejections + 1 if gated_out else 0
+        # the directions rejected by the direction gate on consecutive constant-motion frames (confirm_direction_frames)
+        self.fusion.gated_directions = ([*self.fusion.gated_directions, st.gated_direction][-8:]
+                                        if gated_out and st.gated_direction is not None else [])
         if st.gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself
             self.fusion.forget_motion()
         inliers = e_res.inliers[0][rows] if used_e else None
@@ -372,8 +377,9 @@ class VisualOdometry:
         rows = st.rows
         direction = -(R[0].transpose(0, 1) @ t[0])  # T_prev_cur's translation direction (E is never a stop: judged)
         support = self._gate(st, check_support("E", diag.num_inliers, int(rows.sum()), cfg.gate)
-                             or check_direction("E", direction, self.fusion.expected_direction, 1.0, cfg.gate,
-                                                self.fusion.motion.direction_deg))
+                             or self._new_direction(st, direction, check_direction(
+                                 "E", direction, self.fusion.expected_direction, 1.0, cfg.gate,
+                                 self.fusion.motion.direction_deg)))
         if support is not None:
             return None, support
         failed = f"scale recovery failed (<= {cfg.scale.min_points} usable depth points)"
@@ -400,6 +406,21 @@ class VisualOdometry:
             s = predicted
         diag.tracker, diag.scale = TrackerUsed.essential, s
         return pose_from_rt(R, s * t)[0], None
+
+    def _new_direction(self, st: FrameState, direction: torch.Tensor, reason: str | None) -> str | None:
+        """The direction gate's verdict ``reason`` on ``direction`` (3,), overruled when the results of the last
+        ``gate.confirm_direction_frames - 1`` frames, each rejected by this gate, agree with it (within
+        ``gate.max_direction_change_deg`` of it): the motion turned for good (a hand, not a car; off by default)."""
+        n = self.cfg.gate.confirm_direction_frames
+        if reason is None or not n:
+            return reason
+        recent = self.fusion.gated_directions[-(int(n) - 1):] if int(n) > 1 else []
+        if len(recent) == int(n) - 1 and all(angle_deg(direction, d) <= self.cfg.gate.max_direction_change_deg
+                                             for d in recent):
+            st.diagnostics.add_reason(f"{reason}: accepted, {int(n)} frames in a row agree on the new direction")
+            return None
+        st.gated_direction = direction
+        return reason
 
     def _gate(self, st: FrameState, reason: str | None) -> str | None:
         """A gate's verdict on this frame: None (accepted) or the reason; after ``gate.max_consecutive`` frames in a
@@ -446,8 +467,9 @@ class VisualOdometry:
                                 or check_length("PnP", length, self.fusion.expected_length, cfg.gate,
                                                 image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K),
                                                 self.fusion.expectation_settled, self.fusion.motion.length_ratio)
-                                or check_direction("PnP", direction, self.fusion.expected_direction, length,
-                                                   cfg.gate, self.fusion.motion.direction_deg))
+                                or self._new_direction(st, direction, check_direction(
+                                    "PnP", direction, self.fusion.expected_direction, length, cfg.gate,
+                                    self.fusion.motion.direction_deg)))
             if reason is not None:
                 diag.add_reason(reason)
                 return None

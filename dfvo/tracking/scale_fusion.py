@@ -115,6 +115,7 @@ class ScaleFusion:
         self._recent: list[float] = []
         self.expected_direction: torch.Tensor | None = None
         self.rejections = 0
+        self.gated_directions: list[torch.Tensor] = []  # rejected by the direction gate, consecutive frames
         self.motion.reset()
         self._height_unit: float | None = None
         self._prior = FilterState()

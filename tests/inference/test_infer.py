@@ -166,6 +166,8 @@ def test_tracker_node_is_typed_and_unknown_settings_are_errors() -> None:
                 paper.flow.refine.iterations) == (None, False, False, 0)
     fast = typed(compose_infer("experiment=fast_motion"))  # the sparse refinement, with the temporal points refined
     assert (fast.flow.refine.mode, fast.tracker.scale_filter.refine_points) == ("pyramid", True)
+    hand = typed(compose_infer("experiment=handheld"))  # a new direction confirmed by two frames is accepted
+    assert (hand.tracker.gate.confirm_direction_frames, icfg.tracker.gate.confirm_direction_frames) == (2, None)
     assert typed(compose_infer("seq=06")).tracker.scale.camera_height == 1.65  # seq=NN alone is KITTI odometry
     with pytest.raises((ConfigCompositionException, ConfigKeyError), match="selction_method"):
         compose_infer("tracker.correspondence.selction_method=best_n")

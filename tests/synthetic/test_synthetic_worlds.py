@@ -100,7 +100,8 @@ def test_highway_traffic_moves_on_its_own(highway: SyntheticWorld) -> None:
     assert (v_veh > v_cam + 0.05).any() and ((v_veh > 0.3) & (v_veh < v_cam - 0.05)).any() and (v_veh < -1.0).any()
 
 
-@pytest.mark.parametrize("scenario,kwargs", [("drive", {"speed": 2.0}), ("highway", {}), ("city", {"speed": 0.8})])
+@pytest.mark.parametrize("scenario,kwargs", [("drive", {"speed": 2.0}), ("highway", {}), ("city", {"speed": 0.8}),
+                                             ("handheld", {"speed": 0.05})])
 def test_frame_skip_flow_is_exact(scenario: str, kwargs: dict) -> None:
     world = SyntheticWorld(seed=7, num_frames=6, height=H, width=W, scenario=scenario, **kwargs)
     i = 1
@@ -154,6 +155,44 @@ def test_camera_height_and_kitti_intrinsics(scenario: str, kwargs: dict) -> None
     assert CAMERA_HEIGHT == 1.65
     assert (centre @ normal).abs().item() == pytest.approx(1.65, abs=2e-3)
     assert abs(normal[1].item()) > math.cos(math.radians(1.0)), "road normal within 1 degree of the camera's y axis"
+
+
+def test_handheld_world_moves_like_a_hand_over_a_desk() -> None:
+    """The hand-held world: stops that are exact (zero motion on 'still' frames), jerks (the direction of motion
+    reverses between moving frames), turns about all three axes, the camera inside its box; the desk fitted to the
+    ground pixels' back-projected depth lies exactly the camera's true clearance below it, along a normal tilted
+    from the camera's y axis by the camera's pitch and roll."""
+    from dfvo.synthetic.handheld import BOX_ACROSS, BOX_ALONG, HEIGHT_RANGE
+
+    world = SyntheticWorld(seed=3, num_frames=80, height=H, width=W, scenario="handheld")
+    P = world.poses().numpy()
+    steps = np.diff(P[:, :3, 3], axis=0)
+    length = np.linalg.norm(steps, axis=1)
+    names = world.segment_names()
+    still = np.array([names[k] == "still" and names[k + 1] == "still" for k in range(len(steps))])
+    assert still.any() and (length[still] == 0).all() and (length[~still] > 0).mean() > 0.9
+    moving = np.nonzero(length > 0.005)[0]
+    cos = [steps[a] @ steps[b] / (length[a] * length[b]) for a, b in zip(moving[:-1], moving[1:], strict=True)
+           if b == a + 1]
+    assert min(cos) < 0.0  # the hand reverses from one frame to the next at least once
+    rel = np.stack([P[k, :3, :3].T @ P[k + 1, :3, :3] for k in range(len(P) - 1)])
+    rotvec = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], 1) / 2
+    assert (np.abs(rotvec).max(0) > math.radians(0.5)).all()  # turns about every axis
+    assert (np.abs(P[:, 0, 3]) <= BOX_ACROSS + 0.07).all() and (np.abs(P[:, 2, 3]) <= BOX_ALONG + 0.07).all()
+    clearance = CAMERA_HEIGHT - P[:, 1, 3]
+    assert (clearance >= HEIGHT_RANGE[0] - 0.07).all() and (clearance <= HEIGHT_RANGE[1] + 0.07).all()
+    for k in (0, 40):
+        depth = world.depth(k).reshape(1, -1)
+        ground = world.view(k).ids.reshape(-1) == 0
+        assert ground.float().mean() > 0.05
+        pts = backproject_points(pixel_grid(H, W).reshape(1, -1, 2), depth, world.intrinsics()[None])[0]
+        pts = pts[ground].double()
+        centre = pts.mean(0)
+        normal = torch.linalg.svd(pts - centre)[2][-1]
+        normal = normal * torch.sign(normal[1])
+        assert (centre @ normal).item() == pytest.approx(clearance[k], abs=2e-3)
+        down_in_camera = torch.from_numpy(P[k, :3, :3].T @ np.array([0.0, 1.0, 0.0]))  # world y in camera axes
+        assert float(normal @ down_in_camera) > math.cos(math.radians(0.5))
 
 
 def test_speed_range_and_turns() -> None:

@@ -335,3 +335,33 @@ def test_dataset_camera_height_reaches_the_tracker():
     assert _infer_config().tracker.scale.camera_height is None
     with pytest.raises(ValueError, match="data.camera_height"):
         _infer_config("data=kitti_odom", "data.camera_height=-1")
+
+
+def test_a_direction_confirmed_by_consecutive_frames_is_accepted() -> None:
+    """The synthetic hand-held world with exact flow and its depth 10x too far (steps of 10-40 cm: the direction
+    gate applies): where the hand turns for good, the gate keeps rejecting the true new direction frame after frame
+    (constant motion); with ``confirm_direction_frames=2`` the second frame that agrees is accepted, and every
+    accepted direction is the true one (exact inputs)."""
+    from dfvo.tracking.config import GateConfig as Gate
+
+    w = SyntheticWorld(seed=1000, num_frames=16, scenario="handheld", height=96, width=320)
+    frames = [w.render(i, right=False) for i in range(16)]
+    ff = torch.stack([f["flow_fwd"] for f in frames[:-1]])
+    fb = torch.stack([f["flow_bwd"] for f in frames[:-1]])
+    d = torch.stack([f["depth"] for f in frames]) * 10.0
+    K = w.intrinsics()
+    poses = w.poses()
+    trackers, errors = {}, {}
+    for confirm in (None, 2):
+        cfg = TrackerConfig(scale=ScaleConfig(camera_height=None), gate=Gate(confirm_direction_frames=confirm))
+        res = VisualOdometry(cfg).run(ff, fb, d[:-1], K, depths_next=d[1:])
+        trackers[confirm] = [r.diagnostics.tracker for r in res]
+        errors[confirm] = []
+        for k, r in enumerate(res):
+            t_true = (torch.linalg.inv(poses[k]) @ poses[k + 1])[:3, 3]
+            t = r.T_prev_cur[:3, 3].double()
+            if r.diagnostics.tracker == "E" and t_true.norm() > 1e-6:
+                errors[confirm].append(math.degrees(math.acos(float((t @ t_true) / (t.norm() * t_true.norm())))))
+    cm = {c: sum(t == "constant_motion" for t in v) for c, v in trackers.items()}
+    assert cm[None] >= 4 and cm[2] <= cm[None] - 3, cm
+    assert max(errors[2]) < 1.0, errors[2]  # what the confirmation accepted is the true motion
