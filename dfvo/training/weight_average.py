@@ -57,8 +57,8 @@ class WeightAverage(L.Callback):
             self.average.load_state_dict(self._loaded)
             self._loaded = None
         elif getattr(trainer, "ckpt_path", None):  # the loop's step is restored after this hook: name the file
-            log.info("trainer.ema_decay=%g: %s holds no weight average; it starts from the weights resumed",
-                     self.decay, trainer.ckpt_path)
+            log.info("trainer.ema_decay=%g: %s holds no weight average of this decay; it starts from the weights "
+                     "resumed", self.decay, trainer.ckpt_path)
         pl_module.weight_average = self
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
