@@ -16,7 +16,6 @@ step errors (each pose's error enters two steps with opposite signs).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import sys
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from covariance_nees import read_kitti_poses  # noqa: E402
+from covariance_nees import read_kitti_poses, read_run  # noqa: E402
 
 from dfvo.geometry.pose_covariance import covariance_from_row, step_error  # noqa: E402
 
@@ -55,11 +54,8 @@ def source_spread(row: dict) -> float | None:
 
 
 def blocks(run: Path, gt_path: Path, extra_length_log_std: float = 0.0) -> dict:
-    summary = json.loads((run / "summary.json").read_text())
-    pose_file = Path(summary["pose_file"])
-    pred = read_kitti_poses(pose_file if pose_file.is_file() else run / pose_file.name)
+    _, pred, rows = read_run(run)
     gt = read_kitti_poses(gt_path)[: len(pred)]
-    rows = list(csv.DictReader((run / "frames.csv").open()))
     nees, ratio, err, spread = [], [], [], []
     for k in range(1, len(pred)):
         row = rows[k]

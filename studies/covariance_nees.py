@@ -48,11 +48,17 @@ def read_kitti_poses(path: Path) -> np.ndarray:
     return T
 
 
-def evaluate(out: Path, gt_path: Path | None, inflation: float, drop_correlation: bool = False) -> dict:
+def read_run(out: Path) -> tuple[dict, np.ndarray, list[dict]]:
+    """An ``infer.py`` run's ``summary.json``, its poses (N,4,4) (the pose file where the summary says, else the file
+    of that name in ``out``: a moved run) and its ``frames.csv`` rows."""
     summary = json.loads((out / "summary.json").read_text())
-    pred = read_kitti_poses(Path(summary["pose_file"]) if Path(summary["pose_file"]).is_file()
-                            else out / Path(summary["pose_file"]).name)
-    rows = list(csv.DictReader((out / "frames.csv").open()))
+    pose_file = Path(summary["pose_file"])
+    pred = read_kitti_poses(pose_file if pose_file.is_file() else out / pose_file.name)
+    return summary, pred, list(csv.DictReader((out / "frames.csv").open()))
+
+
+def evaluate(out: Path, gt_path: Path | None, inflation: float, drop_correlation: bool = False) -> dict:
+    summary, pred, rows = read_run(out)
     if gt_path is None:
         gt_path = Path(summary.get("data_root", "")) / "poses" / f"{summary['sequence']}.txt"
     gt = read_kitti_poses(gt_path)[: len(pred)]

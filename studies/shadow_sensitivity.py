@@ -13,19 +13,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
-from hydra import compose, initialize_config_dir
-
-from dfvo.inference.config import typed
-from dfvo.inference.frames import build_sequence
-from dfvo.sources import build_depth_source
-from dfvo.tracking.config import TrackerConfig
-from dfvo.tracking.scale_fusion import depth_road_height
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+from dfvo.sources import build_depth_source  # noqa: E402
+from dfvo.tracking.config import TrackerConfig  # noqa: E402
+from dfvo.tracking.scale_fusion import depth_road_height  # noqa: E402
+from studies.road_height import _sequence  # noqa: E402
 
 
 def shadows(H: int, W: int) -> dict[str, torch.Tensor]:
@@ -37,10 +36,7 @@ def shadows(H: int, W: int) -> dict[str, torch.Tensor]:
 
 
 def sensitivity(weights: str, root: str, seq: str, frames: list[int], darkening: float = 0.55) -> dict:
-    with initialize_config_dir(config_dir=str(REPO / "dfvo" / "conf" / "infer"), version_base="1.3"):
-        cfg = typed(compose("infer", overrides=["data=kitti_odom", f"data.root={root}", f"seq={seq}",
-                                                f"depth.checkpoint={weights}"]))
-    sequence = build_sequence(cfg.data, cfg.seq, cfg.img_res)
+    cfg, sequence = _sequence("kitti_odom", root, seq, weights)
     source = build_depth_source(cfg.depth, None, "cpu")
     K = sequence.K.to(torch.float32)[None]
     images = torch.stack([sequence.image(i) for i in frames])

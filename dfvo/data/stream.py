@@ -371,9 +371,9 @@ class CountingSocket:
 
     def undecodable(self) -> str | None:
         """One line when ``GARBAGE_BYTES`` or more arrived since the last mark, else None (also before the first)."""
-        if self._mark_bytes is None or self.bytes - self._mark_bytes < GARBAGE_BYTES:
+        since = None if self._mark_bytes is None else self.bytes - self._mark_bytes
+        if since is None or since < GARBAGE_BYTES:
             return None
-        since = self.bytes - self._mark_bytes
         return (f"{since} bytes arrived in the {time.monotonic() - self._mark_time:.0f} s since the last frame and "
                 "none decoded as video: the source sends data that is not its video stream (corrupt, or another "
                 "format)")

@@ -93,16 +93,16 @@ def make_handheld_trajectory(num_frames: int, seed: int, speed: float | tuple[fl
 def desk_ground(seed: int):
     """Colour of the desk top (the ground plane) at world (x, z): a blotter with papers and grain to millimetres."""
     s = int(seed)
+    rng = np.random.default_rng(s + 17)
+    sheets = [(rng.uniform(-0.6, 0.6), rng.uniform(0.3, 1.4), rng.uniform(0.15, 0.3), rng.uniform(0.2, 0.35))
+              for _ in range(5)]  # sheets of paper (centre x, z; width, height) with lines of writing
 
     def shade(x: torch.Tensor, z: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
         wood = fbm(x * 0.3, z * 4.0, s + 11, 0.4, 8, fp)  # grain along x
         speck = fbm(x, z, s + 13, 0.05, 5, fp)
         g = 0.25 + 0.35 * wood + 0.25 * (speck - 0.5)
         col = g[:, None] * torch.tensor([0.75, 0.55, 0.38], device=x.device)
-        rng = np.random.default_rng(s + 17)
-        for _ in range(5):  # sheets of paper with lines of writing
-            cx, cz = rng.uniform(-0.6, 0.6), rng.uniform(0.3, 1.4)
-            w, h = rng.uniform(0.15, 0.3), rng.uniform(0.2, 0.35)
+        for cx, cz, w, h in sheets:
             sheet = band(x, cx - w / 2, cx + w / 2, fp) * band(z, cz - h / 2, cz + h / 2, fp)
             ink = band(torch.remainder(z - cz, 0.025), 0.006, 0.012, fp) \
                 * (fbm(x * 3.0, z, s + 19, 0.03, 3, fp) > 0.5).float()

@@ -309,9 +309,11 @@ class VisualOdometry:
                               rows & e_res.inliers[0] if used_e else rows, st.K[0], parallax)
         gated_out = diag.gate_rejected and diag.tracker == TrackerUsed.constant_motion
         self.fusion.rejections = self.fusion.rejections + 1 if gated_out else 0
-        # the directions rejected by the direction gate on consecutive constant-motion frames (confirm_direction_frames)
-        self.fusion.gated_directions = ([*self.fusion.gated_directions, st.gated_direction][-8:]
-                                        if gated_out and st.gated_direction is not None else [])
+        # the directions the direction gate rejected on consecutive constant-motion frames: the last
+        # confirm_direction_frames - 1 of them (a direction is only recorded when that setting is on)
+        self.fusion.gated_directions = (
+            [*self.fusion.gated_directions, st.gated_direction][1 - int(self.cfg.gate.confirm_direction_frames):]
+            if gated_out and st.gated_direction is not None else [])
         if st.gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself
             self.fusion.forget_motion()
         inliers = e_res.inliers[0][rows] if used_e else None
@@ -414,7 +416,7 @@ class VisualOdometry:
         n = self.cfg.gate.confirm_direction_frames
         if reason is None or not n:
             return reason
-        recent = self.fusion.gated_directions[-(int(n) - 1):] if int(n) > 1 else []
+        recent = self.fusion.gated_directions  # at most n - 1, kept by the frame's end
         if len(recent) == int(n) - 1 and all(angle_deg(direction, d) <= self.cfg.gate.max_direction_change_deg
                                              for d in recent):
             st.diagnostics.add_reason(f"{reason}: accepted, {int(n)} frames in a row agree on the new direction")

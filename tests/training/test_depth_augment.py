@@ -99,16 +99,16 @@ def test_bad_settings_name_the_key() -> None:
         DepthAugmentConfig(hue=0.7)
 
 
-def test_depth_module_feeds_jittered_images_to_the_networks_and_plain_ones_to_the_losses(batch: dict) -> None:
-    """With jitter on, the depth and pose networks see the jittered inputs while the photometric terms compare the
-    real images: the loss equals the loss of the same network inputs computed by hand from the plain batch."""
+def _module_seeing_inputs(batch: dict, augment: dict) -> tuple:
+    """A stereo + temporal DepthPoseModule with ``model.augment`` settings ``augment``, a training sample of
+    ``batch``, and the dict the first input of its depth network (``depth``) and the target image of its pose network
+    (``pose``) are recorded in."""
     from omegaconf import OmegaConf
 
     from dfvo.training.depth_module import DepthPoseModule
 
     cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "stereo": True, "temporal": True,
-                                      "init_depth": 10.0, "augment": {"flip_prob": 0.0, "jitter_prob": 1.0}},
-                            "data": {"seed": 0}})
+                                      "init_depth": 10.0, "augment": augment}, "data": {"seed": 0}})
     module = DepthPoseModule(cfg).eval()
     sample = {k: batch[k] for k in ("image", "image_right", "image_next", "K", "T_right_left")}
     sample["image_prev"] = batch["image_next"]
@@ -121,6 +121,13 @@ def test_depth_module_feeds_jittered_images_to_the_networks_and_plain_ones_to_th
 
     module.depth_net.register_forward_hook(record("depth", 0))
     module.pose_net.register_forward_hook(record("pose", 1))
+    return module, sample, seen
+
+
+def test_depth_module_feeds_jittered_images_to_the_networks_and_plain_ones_to_the_losses(batch: dict) -> None:
+    """With jitter on, the depth and pose networks see the jittered inputs while the photometric terms compare the
+    real images: the loss equals the loss of the same network inputs computed by hand from the plain batch."""
+    module, sample, seen = _module_seeing_inputs(batch, {"flip_prob": 0.0, "jitter_prob": 1.0})
     with torch.no_grad():
         loss = module.training_step(sample, 0)
         _, net = augment_depth_batch(sample, module.augment, torch.Generator().manual_seed(0 * 1009 + 0))
@@ -168,10 +175,6 @@ def test_shadows_darken_only_the_drawn_samples_by_the_drawn_factor(batch: dict) 
 def test_shadows_reach_the_depth_network_only_and_keep_the_other_draws(batch: dict) -> None:
     """With shadow_prob > 0 the depth network sees ``image_depth`` (the jittered image with shadows), the pose
     network and the losses the images without; flips and jitter are drawn as without shadows."""
-    from omegaconf import OmegaConf
-
-    from dfvo.training.depth_module import DepthPoseModule
-
     plain_cfg = DepthAugmentConfig(flip_prob=0.5, jitter_prob=1.0)
     shadow_cfg = DepthAugmentConfig(flip_prob=0.5, jitter_prob=1.0, shadow_prob=1.0)
     out_a, net_a = augment_depth_batch(batch, plain_cfg, torch.Generator().manual_seed(2))
@@ -180,22 +183,7 @@ def test_shadows_reach_the_depth_network_only_and_keep_the_other_draws(batch: di
     assert "image_depth" not in net_a
     assert (net_b["image_depth"] < net_b["image"] - 1e-3).any() and (net_b["image_depth"] <= net_b["image"]).all()
 
-    cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "stereo": True, "temporal": True,
-                                      "init_depth": 10.0,
-                                      "augment": {"flip_prob": 0.0, "jitter_prob": 0.0, "shadow_prob": 1.0}},
-                            "data": {"seed": 0}})
-    module = DepthPoseModule(cfg).eval()
-    sample = {k: batch[k] for k in ("image", "image_right", "image_next", "K", "T_right_left")}
-    sample["image_prev"] = batch["image_next"]
-    seen: dict[str, torch.Tensor] = {}
-
-    def record(name: str, position: int):
-        def hook(module: torch.nn.Module, args: tuple, output: object) -> None:
-            seen.setdefault(name, args[position])
-        return hook
-
-    module.depth_net.register_forward_hook(record("depth", 0))
-    module.pose_net.register_forward_hook(record("pose", 1))
+    module, sample, seen = _module_seeing_inputs(batch, {"flip_prob": 0.0, "jitter_prob": 0.0, "shadow_prob": 1.0})
     with torch.no_grad():
         module.training_step(sample, 0)
     _, net = augment_depth_batch(sample, module.augment, torch.Generator().manual_seed(0))
