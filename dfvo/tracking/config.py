@@ -333,8 +333,9 @@ class ScaleFilterConfig:
             walk (estimated only with ``camera_height`` and ``temporal``).
         gate_sigma: absolute observations further than this many standard deviations from the prediction are
             rejected (once the filter has converged). When the absolute observations together disagree with the
-            prediction beyond it, the frame counts towards ``max_rejections`` (a prediction that ran away, e.g. a
-            relative scale wrong over several frames of a turn, cannot outvote them for long).
+            prediction beyond it, and with each other within it, the frame counts towards ``max_rejections`` (a
+            prediction that ran away, e.g. a relative scale wrong over several frames of a turn, cannot outvote
+            them for long; two observations that contradict each other are no evidence against it).
         max_inconsistency: forward-backward inconsistency (px) allowed at the previous pair's points.
         min_parallax_deg: both triangulations of a shared point need this parallax.
         min_points: fewer shared points: no relative scale this frame.

@@ -187,10 +187,13 @@ class ScaleFilter:
         # the absolute observations on their own (the prior's scale forgotten): when they disagree with the
         # prediction beyond the gate, the frame counts like one whose observations were all gated out, so a
         # prediction that ran away (the relative scale wrong over several frames) cannot outvote them for long
+        # -- but only when they agree among themselves: two of them further apart than the gate mean that one is an
+        # outlier (e.g. the road alignment reading a side street's slope in a turn), and their mean is then no
+        # evidence against the prediction
         alone = replace(prior, x=0.0, pxx=UNKNOWN_VAR, pxb=0.0)
         for _, z, hx, hbi, r in observations:
             alone, _ = self._update(alone, z, hx, hbi, r, False)
-        disagree = (gate and prior.known and alone.known
+        disagree = (gate and prior.known and alone.known and self._agree(observations, prior)
                     and (alone.x - prior.x) ** 2 > self.gate_sigma ** 2 * (prior.pxx + alone.pxx))
         for name, z, hx, hbi, r in observations:
             s, ok = self._update(s, z, hx, hbi, r, gate)
@@ -201,6 +204,13 @@ class ScaleFilter:
             return ScaleEstimate(None, "none", predicted, math.exp(s.b), s, rejected)
         source = "+".join(used) if absolute else ("temporal" if temporal_used else "prediction")
         return ScaleEstimate(math.exp(s.x), source, predicted, math.exp(s.b), s, rejected, all_rejected)
+
+    def _agree(self, observations: list[tuple[str, float, float, float, float]], prior: FilterState) -> bool:
+        """Every two observations of the length (``hx`` = 1; log values, the CNN's less the prior's bias ``b``)
+        within ``gate_sigma`` standard deviations of each other (their variances, the CNN's plus the bias's)."""
+        lengths = [(z - hbi * prior.b, r + hbi * hbi * prior.pbb) for _, z, hx, hbi, r in observations if hx != 0.0]
+        return all((xi - xj) ** 2 <= self.gate_sigma ** 2 * (vi + vj)
+                   for i, (xi, vi) in enumerate(lengths) for xj, vj in lengths[i + 1:])
 
     def commit(self, state: FilterState, all_rejected: bool = False) -> None:
         """Keep ``state`` (the chosen frame's posterior) for the next frame (no-op without memory);

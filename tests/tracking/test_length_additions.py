@@ -121,6 +121,33 @@ def test_filter_restarts_when_its_prediction_runs_away():
     assert abs(out[n] - 1.0) < 0.01, out
 
 
+def test_filter_is_not_restarted_by_observations_that_contradict_each_other():
+    """KITTI 07's turn into a side street (frames 137-140 with the depth campaign's network): the relative scale keeps
+    the true 1 m, the road alignment reads the side street's slope as 1.8-2x, the CNN scale stays near the truth but
+    has one frame at half of it. The CNN and the road alignment contradict each other (more than ``gate_sigma``
+    apart), so their mean is no evidence against the prediction: the filter holds 1 m (it used to count those
+    frames as a runaway prediction and restart from their fusion, ~1.4 m, carried on by the relative scale). When
+    the two agree with each other instead (both 2x), the prediction is outvoted after ``max_rejections`` frames, as
+    before."""
+    def run(cnn: list[float], homography: list[float]) -> list[float]:
+        f, out = make_filter(), []
+        for k in range(8 + len(cnn)):  # a settled start at the truth, then the frames of the case
+            z_cnn, z_h = (1.0, 1.0) if k < 8 else (cnn[k - 8], homography[k - 8])
+            prior = f.prior(1.0 if k > 0 else None, None)
+            est = f.estimate(prior, z_cnn, None, temporal_used=k > 0 and f.state.known, homography=z_h,
+                             homography_log_std=0.07)
+            f.commit(est.state, est.all_rejected)
+            out.append(est.scale)
+        return out[8:]
+
+    contradicting = run(cnn=[1.1, 1.1, 0.55, 0.9, 1.0, 1.0], homography=[1.8, 1.8, 1.9, 2.0, 2.0, 2.0])
+    assert all(abs(v - 1.0) < 0.05 for v in contradicting), contradicting
+    agreeing = run(cnn=[2.0] * 6, homography=[2.0] * 6)
+    n = ScaleFilterConfig.max_rejections
+    assert all(abs(v - 1.0) < 0.05 for v in agreeing[:n]), agreeing
+    assert abs(agreeing[n] - 2.0) < 0.01, agreeing
+
+
 # ------------------------------------------------------------------------------------------ camera height
 @pytest.fixture(scope="module")
 def straight(straight_pairs):
