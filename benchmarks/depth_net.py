@@ -1,6 +1,10 @@
 """Speed of the depth network and of one depth-stereo training step on this machine; prints JSON.
 
     python benchmarks/depth_net.py [--height 192 --width 640 --threads 1 --batch 4 --repeats 5] [--skip-train]
+    python benchmarks/depth_net.py --widths 1 0.75 0.5 --height 96 --width 320 --batch 4 --repeats 9
+
+``--widths``: only the inference path (``DepthNet.depth`` of a batch) of networks of these channel multipliers
+(``model.width``), interleaved in one process; ``width_ms`` per width and ``width_ratio`` to the first.
 
 ``depth_net_forward_ms`` is the inference path that the pipeline uses (``DepthNet.depth``, called by
 ``dfvo.sources.networks.NetworkDepth``: scale-0 head only, folded batch norms, channels_last);
@@ -44,6 +48,20 @@ def _time_interleaved(fns: dict[str, Callable[[], object]], repeats: int) -> dic
     return {k: 1000.0 * sorted(t)[len(t) // 2] for k, t in times.items()}
 
 
+def compare_widths(widths: list[float], batch: int, height: int, width: int, repeats: int, threads: int) -> dict:
+    """Median ms of ``DepthNet(width=w).depth`` on a (batch,3,height,width) input per width, interleaved."""
+    x = torch.rand(batch, 3, height, width)
+    nets = {w: DepthNet(width=w).eval() for w in widths}
+    with torch.no_grad():
+        t = _time_interleaved({str(w): (lambda n=n: n.depth(x)) for w, n in nets.items()}, repeats)
+    first = t[str(widths[0])]
+    return {"machine": f"{platform.processor() or platform.machine()}, torch threads {threads}",
+            "input": f"{batch}x3x{height}x{width}", "width_ms": {k: round(v, 1) for k, v in t.items()},
+            "width_ratio": {k: round(v / first, 3) for k, v in t.items()},
+            "parameters_millions": {str(w): round(sum(p.numel() for p in n.parameters()) / 1e6, 2)
+                                    for w, n in nets.items()}}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--height", type=int, default=192)
@@ -54,9 +72,13 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--skip-train", action="store_true", help="time the forward passes only")
+    p.add_argument("--widths", type=float, nargs="+", help="compare the inference path of these network widths")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
+    if a.widths:
+        print(json.dumps(compare_widths(a.widths, a.batch, a.height, a.width, a.repeats, a.threads)))
+        return
     x = torch.rand(1, 3, a.height, a.width)
     net, enc = DepthNet().eval(), ResNet18Encoder(1).eval()
     with torch.no_grad():

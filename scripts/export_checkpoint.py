@@ -33,19 +33,24 @@ from dfvo.training.export import weights_metadata
 
 
 def _checkpoint_info(path: Path) -> dict:
-    """Step, epoch, model identity and trained size (``data.height``/``width``) of a train.py checkpoint."""
+    """Step, epoch, model identity, trained size (``data.height``/``width``) and depth network width
+    (``model.width``) of a train.py checkpoint."""
     obj = torch.load(path, map_location="cpu", weights_only=False) if path.suffix == ".ckpt" else {}
-    data = ((obj.get("hyper_parameters") or {}).get("cfg") or {}).get("data") or {} if isinstance(obj, dict) else {}
+    cfg = ((obj.get("hyper_parameters") or {}).get("cfg") or {}) if isinstance(obj, dict) else {}
+    data, model = cfg.get("data") or {}, cfg.get("model") or {}
     return {"global_step": obj.get("global_step"), "epoch": obj.get("epoch"), "identity": obj.get(MODEL_IDENTITY_KEY),
-            "height": data.get("height"), "width": data.get("width")}
+            "height": data.get("height"), "width": data.get("width"), "net_width": model.get("width", 1.0)}
 
 
-def build_network(task: str, path: Path, variant: str | None) -> tuple[torch.nn.Module, dict[str, str]]:
-    """The network of ``task`` ("flow" or "depth") filled from ``path``, and metadata describing it."""
+def build_network(task: str, path: Path, variant: str | None, net_width: float = 1.0
+                  ) -> tuple[torch.nn.Module, dict[str, str]]:
+    """The network of ``task`` ("flow" or "depth", of channel multiplier ``net_width``) filled from ``path``, and
+    metadata describing it."""
     if task == "depth":
-        net = DepthNet()
+        net = DepthNet(width=net_width)
         load_weights(net, path, "depth network DepthNet")
-        return net.eval(), {"task": "depth", "min_depth": str(net.min_depth), "max_depth": str(net.max_depth)}
+        return net.eval(), {"task": "depth", "min_depth": str(net.min_depth), "max_depth": str(net.max_depth),
+                            "width_multiplier": repr(net.width)}
     for name in [variant] if variant else list(VARIANTS):
         net = FlowNet(name)
         try:
@@ -75,13 +80,14 @@ def main() -> None:
     if not (height and width):
         raise SystemExit(f"{args.checkpoint}: records no trained size (data.height/width); pass --height and --width")
 
-    net, net_meta = build_network(args.task, args.checkpoint, args.variant)
+    net, net_meta = build_network(args.task, args.checkpoint, args.variant, float(info["net_width"]))
     meta = weights_metadata(net_meta, int(height), int(width), global_step=info["global_step"], epoch=info["epoch"],
                             source=args.checkpoint, identity=info["identity"])
     state = {k: v.detach().to(torch.float16).contiguous() if v.is_floating_point() else v.contiguous()
              for k, v in net.state_dict().items()}
     # check: the fp16 copy gives the same output as the original up to fp16 rounding
-    back = type(net)(meta["variant"]) if args.task == "flow" else DepthNet(net.min_depth, net.max_depth)
+    back = type(net)(meta["variant"]) if args.task == "flow" else DepthNet(net.min_depth, net.max_depth,
+                                                                                         width=net.width)
     back.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
     back.eval()
     torch.manual_seed(0)

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK_SHAPE
 from torch import nn
 
-from dfvo.models.resnet import BasicBlock, ResNet18Encoder
+from dfvo.models.resnet import BasicBlock, ResNet18Encoder, scaled_channels
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)
 SCALES = (0, 1, 2, 3)
@@ -82,6 +82,20 @@ def fold_batch_norms(encoder: ResNet18Encoder) -> ResNet18Encoder:
     return fused
 
 
+def network_width(meta: dict[str, str], setting: str) -> float:
+    """The channel multiplier (``DepthNet(width=...)``) a weights file's metadata records (``width_multiplier``;
+    absent: 1, the files written before narrower networks existed); ``setting`` names the file's config key in the
+    one-line error for a value that is not a positive number."""
+    raw = meta.get("width_multiplier", "1.0")
+    try:
+        width = float(raw)
+    except ValueError:
+        width = float("nan")
+    if not width > 0 or not math.isfinite(width):
+        raise ValueError(f"{setting}: the file's width_multiplier metadata is {raw!r}; expected a positive number")
+    return width
+
+
 class ConvBlock(nn.Module):
     """3x3 convolution with reflection padding followed by ELU."""
 
@@ -98,16 +112,16 @@ class ConvBlock(nn.Module):
 class DepthDecoder(nn.Module):
     """U-Net style decoder over the 5 ResNet feature maps; disparity heads at scales 0..3."""
 
-    def __init__(self, num_ch_enc: tuple[int, ...]) -> None:
+    def __init__(self, num_ch_enc: tuple[int, ...], channels: tuple[int, ...] = DECODER_CHANNELS) -> None:
         super().__init__()
         self.up0 = nn.ModuleList()
         self.up1 = nn.ModuleList()
         for i in range(5):
-            in_ch = num_ch_enc[-1] if i == 4 else DECODER_CHANNELS[i + 1]
-            self.up0.append(ConvBlock(in_ch, DECODER_CHANNELS[i]))
+            in_ch = num_ch_enc[-1] if i == 4 else channels[i + 1]
+            self.up0.append(ConvBlock(in_ch, channels[i]))
             skip = num_ch_enc[i - 1] if i > 0 else 0
-            self.up1.append(ConvBlock(DECODER_CHANNELS[i] + skip, DECODER_CHANNELS[i]))
-        self.heads = nn.ModuleList([ConvBlock(DECODER_CHANNELS[s], 1, activation=False) for s in SCALES])
+            self.up1.append(ConvBlock(channels[i] + skip, channels[i]))
+        self.heads = nn.ModuleList([ConvBlock(channels[s], 1, activation=False) for s in SCALES])
 
     def forward(self, features: list[torch.Tensor], scales: Sequence[int] = SCALES) -> dict[int, torch.Tensor]:
         """Disparities at ``scales`` from the encoder features.
@@ -146,17 +160,22 @@ class DepthNet(nn.Module):
             untrained stereo model predicts a plausible metric depth: with the sigmoid at 0.5 the initial
             depth would be ~0.2 m, whose stereo disparity (fx * b / z, ~500 px at 320 px width) leaves the
             image and gives the stereo term no gradient.
+        width: channel multiplier of the encoder and the decoder (:func:`~dfvo.models.resnet.scaled_channels`);
+            1 is the monodepth2 network, 0.5 a cheaper one with about a quarter of its multiply-adds. Files
+            record it (metadata ``width_multiplier``, :func:`network_width`).
 
     Shape:
         - Input: (B,3,H,W), H, W multiples of 32.
         - Output of ``forward``: dict scale -> (B,1,H/2^s,W/2^s) disparity in (0,1), scales 0..3.
     """
 
-    def __init__(self, min_depth: float = 0.1, max_depth: float = 100.0, init_depth: float | None = None) -> None:
+    def __init__(self, min_depth: float = 0.1, max_depth: float = 100.0, init_depth: float | None = None,
+                 width: float = 1.0) -> None:
         super().__init__()
         self.min_depth, self.max_depth = float(min_depth), float(max_depth)
-        self.encoder = ResNet18Encoder(1)
-        self.decoder = DepthDecoder(self.encoder.num_ch_enc)
+        self.width = float(width)
+        self.encoder = ResNet18Encoder(1, width)
+        self.decoder = DepthDecoder(self.encoder.num_ch_enc, scaled_channels(DECODER_CHANNELS, width))
         # (weights key, encoder, decoder) inference copy of :meth:`disparity`; not part of the state dict
         self._inference_cache: tuple[tuple, ResNet18Encoder, DepthDecoder] | None = None
         if init_depth is not None:

@@ -3,7 +3,8 @@
 Convention:
     Input (B,C,H,W) images in [0,1] with C = 3 * num_frames; the encoder normalises them with the
     ImageNet mean/std (as monodepth2 does, by ``(x - 0.45) / 0.225``). Output: 5 feature maps at strides
-    2, 4, 8, 16, 32 with 64, 64, 128, 256, 512 channels.
+    2, 4, 8, 16, 32 with 64, 64, 128, 256, 512 channels (times ``width``: a narrower network, e.g. 0.5 for a
+    quarter of the multiply-adds).
 """
 
 from __future__ import annotations
@@ -13,6 +14,14 @@ from kornia.core.check import KORNIA_CHECK_SHAPE
 from torch import nn
 
 ENCODER_CHANNELS = (64, 64, 128, 256, 512)
+
+
+def scaled_channels(channels: tuple[int, ...], width: float) -> tuple[int, ...]:
+    """``channels`` times ``width`` (> 0), rounded to multiples of 8 (at least 8): the layer widths of a narrower
+    (or wider) network; ``width=1`` returns ``channels``."""
+    if not width > 0:
+        raise ValueError(f"network width {width}; expected a positive channel multiplier (1: the full network)")
+    return tuple(max(8, int(round(c * width / 8)) * 8) for c in channels)
 
 
 class BasicBlock(nn.Module):
@@ -41,27 +50,28 @@ class ResNet18Encoder(nn.Module):
 
     Args:
         num_input_frames: 1 for the depth network (3 channels), 2 for the pose network (6 channels).
+        width: channel multiplier (:func:`scaled_channels`); 1 is ResNet-18.
 
     Shape:
         - Input: (B, 3*num_input_frames, H, W), H and W multiples of 32.
-        - Output: list of 5 tensors (B,64,H/2,W/2), (B,64,H/4,W/4), (B,128,H/8,W/8), (B,256,H/16,W/16),
-          (B,512,H/32,W/32).
+        - Output: list of 5 tensors (B,C0,H/2,W/2), (B,C1,H/4,W/4), (B,C2,H/8,W/8), (B,C3,H/16,W/16),
+          (B,C4,H/32,W/32), ``num_ch_enc`` = (C0..C4) = (64, 64, 128, 256, 512) at ``width=1``.
     """
 
-    def __init__(self, num_input_frames: int = 1) -> None:
+    def __init__(self, num_input_frames: int = 1, width: float = 1.0) -> None:
         super().__init__()
         if num_input_frames < 1:
             raise ValueError(f"ResNet18Encoder: num_input_frames must be >= 1, got {num_input_frames}")
         self.in_channels = 3 * num_input_frames
-        self.num_ch_enc = ENCODER_CHANNELS
-        self.conv1 = nn.Conv2d(self.in_channels, 64, 7, 2, 3, bias=False)
-        self.bn1 = nn.BatchNorm2d(64)
+        self.num_ch_enc = c = scaled_channels(ENCODER_CHANNELS, width)
+        self.conv1 = nn.Conv2d(self.in_channels, c[0], 7, 2, 3, bias=False)
+        self.bn1 = nn.BatchNorm2d(c[0])
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(3, 2, 1)
-        self.layer1 = nn.Sequential(BasicBlock(64, 64), BasicBlock(64, 64))
-        self.layer2 = nn.Sequential(BasicBlock(64, 128, 2), BasicBlock(128, 128))
-        self.layer3 = nn.Sequential(BasicBlock(128, 256, 2), BasicBlock(256, 256))
-        self.layer4 = nn.Sequential(BasicBlock(256, 512, 2), BasicBlock(512, 512))
+        self.layer1 = nn.Sequential(BasicBlock(c[0], c[1]), BasicBlock(c[1], c[1]))
+        self.layer2 = nn.Sequential(BasicBlock(c[1], c[2], 2), BasicBlock(c[2], c[2]))
+        self.layer3 = nn.Sequential(BasicBlock(c[2], c[3], 2), BasicBlock(c[3], c[3]))
+        self.layer4 = nn.Sequential(BasicBlock(c[3], c[4], 2), BasicBlock(c[4], c[4]))
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")

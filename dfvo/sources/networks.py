@@ -26,7 +26,7 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.camera import resize_flow
 from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
-from dfvo.models.depth_net import DepthNet
+from dfvo.models.depth_net import DepthNet, network_width
 from dfvo.models.flow_net import FlowNet
 from dfvo.sources.config import DepthSourceConfig, RuntimeConfig, RuntimeKind
 
@@ -232,7 +232,11 @@ class NetworkDepth:
         if depth_scale <= 0:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)
-        self.model = DepthNet(min_depth, max_depth).to(device).eval()
+        width = 1.0
+        if self.checkpoint.is_file():
+            _, meta = read_state_dict(self.checkpoint, "depth network DepthNet", "depth.checkpoint")
+            width = network_width(meta, "depth.checkpoint")
+        self.model = DepthNet(min_depth, max_depth, width=width).to(device).eval()
         meta = load_weights(self.model, self.checkpoint, "depth network DepthNet", "depth.checkpoint")
         self.depth_scale = float(depth_scale)
         self.device = torch.device(device)

@@ -109,6 +109,13 @@ class DepthModelConfig:
         init_from: start from these weights (DepthNet ``.safetensors``/``.pt``, or a depth ``.ckpt``; not a resume).
         initialised_from: where a checkpoint's weights started from (written by training, see
             :mod:`dfvo.training.hparams`).
+        width: the depth network's channel multiplier (``DepthNet(width=...)``; 1: the monodepth2 network, 0.5: a
+            cheaper one with about a quarter of its multiply-adds); exports record it.
+        teacher: a trained depth network's weights file (any width): distillation. It sees each sample's image before
+            ``augment.shadow_prob``'s shadows (so the student learns to ignore them), in inference mode, and is not
+            part of the checkpoints.
+        w_distill: weight of the distillation loss: at every scale, the log-depth L1 of the scale's depth against
+            the teacher's (0: off; > 0 needs ``teacher``).
     """
 
     _target_: str = "dfvo.training.depth_module.DepthPoseModule"
@@ -135,21 +142,28 @@ class DepthModelConfig:
     augment: DepthAugmentConfig | None = field(default_factory=DepthAugmentConfig)
     init_from: str | None = None
     initialised_from: str | None = None
+    width: float = 1.0
+    teacher: str | None = None
+    w_distill: float = 0.0
 
     def __post_init__(self) -> None:
         if self.task != "depth":
             raise ValueError(f"model.task={self.task!r}; the depth schema (model/schema/depth) trains task 'depth'")
         if not (self.stereo or self.temporal):
             raise ValueError("model: at least one of model.stereo / model.temporal must be true")
-        for key in ("w_smooth", "w_consistency", "w_depth_supervised", "w_depth_hints", "w_camera_height"):
+        for key in ("w_smooth", "w_consistency", "w_depth_supervised", "w_depth_hints", "w_camera_height",
+                    "w_distill"):
             if getattr(self, key) < 0:
                 raise ValueError(f"model.{key}={getattr(self, key)}; expected >= 0")
         if self.w_depth_hints > 0 and not self.stereo:
             raise ValueError("model.w_depth_hints > 0 needs model.stereo = true (hints reproject the stereo partner)")
         if self.w_consistency > 0 and not self.temporal:
             raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
+        if self.w_distill > 0 and not self.teacher:
+            raise ValueError(f"model.w_distill={self.w_distill} needs model.teacher (a trained depth network's weights "
+                             "file to distil from)")
         positive("model", min_depth=self.min_depth, lr=self.lr, lr_drop_fraction=self.lr_drop_fraction,
-                  init_depth=self.init_depth)
+                  init_depth=self.init_depth, width=self.width)
         if self.max_depth <= self.min_depth:
             raise ValueError(f"model.max_depth={self.max_depth}; expected > model.min_depth={self.min_depth}")
 

@@ -22,7 +22,9 @@ stereo-matcher depth ``H`` (``depth_hint``, 0: none) reprojects the stereo partn
 the scale's depth ``D_s`` reaches with any source view, plus ``model.w_camera_height`` x the camera-height loss
 (:func:`dfvo.losses.road_height.road_height_log_l1`): the road pixels of the tracker's road band, those on the plane
 fitted to the scale-0 depth (no gradient through the fit), held at the sample's known ``camera_height`` (KITTI samples;
-0: none).
+0: none), plus ``model.w_distill`` x the log-depth L1 of that scale's depth against a trained network's
+(``model.teacher``, run in inference mode on the sample's image before the shadows of ``augment.shadow_prob``):
+distillation, e.g. into a narrower network (``model.width``).
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from dfvo.losses.photometric import INVALID_ERROR, min_over_views, ssim_l1_error
 from dfvo.losses.reprojection import reproject
 from dfvo.losses.road_height import road_height_log_l1
 from dfvo.losses.smoothness import edge_aware_smoothness
-from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth
+from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth, network_width
 from dfvo.models.pose_net import PoseNet
 from dfvo.tracking.config import RoadPlaneConfig
 from dfvo.tracking.ground_plane import fit_road_plane, road_grid
@@ -82,7 +84,10 @@ class DepthPoseModule(L.LightningModule):
         self.min_depth, self.max_depth = m.min_depth, m.max_depth
         self.lr, self.lr_drop_fraction = m.lr, m.lr_drop_fraction
         self.log_images_every = m.log_images_every
-        self.depth_net = DepthNet(self.min_depth, self.max_depth, m.init_depth)
+        self.depth_net = DepthNet(self.min_depth, self.max_depth, m.init_depth, width=m.width)
+        self.w_distill = m.w_distill
+        # the teacher in a tuple: not a submodule, so neither the checkpoints nor the optimiser hold it
+        self._teacher: tuple[DepthNet, ...] = (self._load_teacher(str(m.teacher)),) if m.w_distill > 0 else ()
         self.pose_net = PoseNet() if self.temporal else None
         self.augment = m.augment
         self.augment_seed = int(cfg.data.seed) if "data" in cfg else 0
@@ -93,7 +98,18 @@ class DepthPoseModule(L.LightningModule):
     def export_network(self) -> tuple[torch.nn.Module, dict[str, str]]:
         """The network inference loads (DepthNet; the pose network stays in the training checkpoint) and the
         metadata describing it (see :func:`dfvo.training.export.export_weights`)."""
-        return self.depth_net, {"task": "depth", "min_depth": str(self.min_depth), "max_depth": str(self.max_depth)}
+        return self.depth_net, {"task": "depth", "min_depth": str(self.min_depth), "max_depth": str(self.max_depth),
+                                "width_multiplier": repr(self.depth_net.width)}
+
+    def _load_teacher(self, path: str) -> DepthNet:
+        """The distillation teacher of ``model.teacher``: a DepthNet of the width and depth range its file records, in
+        inference mode without gradients."""
+        path = str(find_checkpoint(path, "model.teacher"))
+        _, meta = read_state_dict(path, "depth network DepthNet", "model.teacher")
+        teacher = DepthNet(float(meta.get("min_depth", self.min_depth)), float(meta.get("max_depth", self.max_depth)),
+                           width=network_width(meta, "model.teacher"))
+        load_weights(teacher, path, "depth network DepthNet", "model.teacher", task="depth")
+        return teacher.eval().requires_grad_(False)
 
     def _init_weights_from(self, path: str) -> None:
         """Load DepthNet (required) and PoseNet (when the file holds one: keys under ``pose_net.``) from ``path`` (a
@@ -164,6 +180,10 @@ class DepthPoseModule(L.LightningModule):
         temporal = [s for s in sources if s[0] != "stereo"]
         # the depth network's input: with shadows cast (augment.shadow_prob) when drawn, else the jittered image
         depth_input = net.get("image_depth", net.get("image", image))
+        teacher_depth = None
+        if self._teacher:
+            with torch.no_grad():
+                teacher_depth = self._teacher[0].to(image.device).depth(net.get("image", image)).float()
         if self.w_consistency > 0:
             keys = {"prev": "image_prev", "next": "image_next"}
             views = [depth_input] + [net.get(keys[s[0]], s[1]) for s in temporal]
@@ -172,11 +192,12 @@ class DepthPoseModule(L.LightningModule):
         else:
             disps = self.depth_net(depth_input)
         with float32_losses(image.device):  # the networks may run under bf16 autocast; the losses never do
-            return self._losses_from(batch, sources, disps, disps_all if self.w_consistency > 0 else None)
+            return self._losses_from(batch, sources, disps, disps_all if self.w_consistency > 0 else None,
+                                     teacher_depth)
 
     def _losses_from(self, batch: dict[str, torch.Tensor], sources: list[tuple[str, torch.Tensor, torch.Tensor]],
-                     disps: dict[int, torch.Tensor], disps_all: dict[int, torch.Tensor] | None
-                     ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict]:
+                     disps: dict[int, torch.Tensor], disps_all: dict[int, torch.Tensor] | None,
+                     teacher_depth: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict]:
         image, K = batch["image"], batch["K"].float()
         B, _, H, W = image.shape
         sources = [(name, src, T.float()) for name, src, T in sources]
@@ -240,6 +261,10 @@ class DepthPoseModule(L.LightningModule):
                 sup, _ = log_depth_l1(depth, batch["depth"], self.max_depth)
                 loss_s = loss_s + self.w_depth_supervised * sup
                 terms[f"depth_supervised_s{s}"] = sup.detach()
+            if teacher_depth is not None:
+                distill, _ = log_depth_l1(depth, teacher_depth, self.max_depth)
+                loss_s = loss_s + self.w_distill * distill
+                terms[f"distill_s{s}"] = distill.detach()
             if road is not None:
                 normal, on_road = road
                 height_loss, _ = road_height_log_l1(depth, K, normal, on_road, batch["camera_height"].float())

@@ -4,19 +4,20 @@ A run writes ``RUN/weights.safetensors`` beside its resumable ``RUN/checkpoints/
 (:class:`LastCheckpoint`); ``scripts/export_checkpoint.py`` writes the same format from any checkpoint. Both use
 :func:`weights_metadata`, so the file always says what it holds:
 
-==================  =======================================================================================
-key                 value (strings)
-==================  =======================================================================================
-``task``            ``flow`` or ``depth``
-``variant``         FlowNet variant (flow)
-``min_depth``       the DepthNet's depth range in metres (depth)
+====================  =======================================================================================
+key                   value (strings)
+====================  =======================================================================================
+``task``              ``flow`` or ``depth``
+``variant``           FlowNet variant (flow)
+``min_depth``         the DepthNet's depth range in metres (depth)
 ``max_depth``
-``height``          the input size the network was trained at (inference resizes to it)
+``width_multiplier``  the DepthNet's channel multiplier (depth; ``model.width``)
+``height``            the input size the network was trained at (inference resizes to it)
 ``width``
-``global_step``     the training step of the weights; ``epoch`` its epoch
-``source``          the checkpoint the weights are (or were written beside)
-``dfvo_model``      the run's model identity ``task:name`` (when known)
-==================  =======================================================================================
+``global_step``       the training step of the weights; ``epoch`` its epoch
+``source``            the checkpoint the weights are (or were written beside)
+``dfvo_model``        the run's model identity ``task:name`` (when known)
+====================  =======================================================================================
 
 Load it with ``infer.py flow.checkpoint=RUN/weights.safetensors`` (or ``depth.checkpoint=``), or as
 ``model.init_from`` of another training run.

@@ -149,3 +149,23 @@ def test_depth_hints_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
     assert out["global_step"] == 3 and "train/depth_hints_s0" in out["metrics"]
     assert list((tmp_path / "frame_cache").glob("*_sgbm_hints_64x128_*.npy"))
     assert out["module"].hparams["cfg"]["model"]["initialised_from"].endswith("checkpoints/depth.safetensors")
+
+
+def test_depth_small_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
+    """`python train.py experiment=depth_small trainer=smoke` (tiny): the half-width network distils from the network
+    at RUNS/depth_scene/weights.safetensors (here a saved full-width one), the distillation terms are logged, and the
+    export records its width."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    from dfvo.models.depth_net import DepthNet
+
+    teacher = tmp_path / "depth_scene" / "weights.safetensors"
+    teacher.parent.mkdir()
+    save_file({k: v.contiguous() for k, v in DepthNet(init_depth=10.0).state_dict().items()}, str(teacher),
+              metadata={"task": "depth", "width_multiplier": "1.0"})
+    out = _run(tmp_path, "experiment=depth_small", f"data.root={kitti_raw_root.parent}", *TINY_DEPTH)
+    assert out["global_step"] == 3 and "train/distill_s0" in out["metrics"]
+    assert out["module"].depth_net.encoder.num_ch_enc == (32, 32, 64, 128, 256)
+    with safe_open(str(tmp_path / "depth_small" / "weights.safetensors"), "pt") as f:
+        assert f.metadata()["width_multiplier"] == "0.5"

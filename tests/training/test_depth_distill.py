@@ -1,0 +1,164 @@
+"""Narrower depth networks (``model.width``) and distillation from a trained one (``model.teacher``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from safetensors.torch import save_file
+
+from dfvo.losses.depth_supervision import log_depth_l1
+from dfvo.models.depth_net import DepthNet
+from dfvo.synthetic import SyntheticWorld
+from dfvo.training.augment import augment_depth_batch
+
+H, W = 64, 192
+
+
+def conv_multiply_adds(net: DepthNet, h: int = 96, w: int = 320) -> int:
+    """Multiply-adds of every convolution of ``net``'s training forward on one (1,3,h,w) image, counted by hooks
+    from each layer's weight shape and output size."""
+    total = 0
+
+    def count(module: torch.nn.Conv2d, args: tuple, out: torch.Tensor) -> None:
+        nonlocal total
+        total += out.numel() * module.weight[0].numel()
+
+    hooks = [m.register_forward_hook(count) for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    with torch.no_grad():
+        net(torch.rand(1, 3, h, w))
+    for hook in hooks:
+        hook.remove()
+    return total
+
+
+def test_half_width_network_has_a_quarter_of_the_work_and_the_same_outputs() -> None:
+    """width=0.5 halves every layer (encoder 32..256 channels, decoder 8..128) and so needs about a quarter of the
+    multiply-adds (every convolution's cost is in_channels x out_channels; the 3-channel input and the 1-channel
+    heads do not halve); its outputs have the full network's shapes and range."""
+    full, half = DepthNet(), DepthNet(width=0.5)
+    assert full.encoder.num_ch_enc == (64, 64, 128, 256, 512)
+    assert half.encoder.num_ch_enc == (32, 32, 64, 128, 256)
+    assert [b.conv.out_channels for b in half.decoder.up1] == [8, 16, 32, 64, 128]
+    ratio = conv_multiply_adds(half) / conv_multiply_adds(full)
+    assert 0.25 <= ratio < 0.30, ratio
+    x = torch.rand(2, 3, 64, 96)
+    out_full, out_half = full(x), half(x)
+    assert {s: v.shape for s, v in out_full.items()} == {s: v.shape for s, v in out_half.items()}
+    with pytest.raises(ValueError, match="network width"):
+        DepthNet(width=0.0)
+
+
+def test_a_narrow_networks_file_loads_as_what_it_was(tmp_path: Path) -> None:
+    """A half-width network exported with its ``width_multiplier`` runs as the depth source exactly as the network
+    itself does; a file whose record is not a positive number is refused with one line naming the setting."""
+    from dfvo.sources.networks import NetworkDepth
+
+    torch.manual_seed(0)
+    net = DepthNet(width=0.5).eval()
+    path = tmp_path / "small.safetensors"
+    meta = {"task": "depth", "min_depth": "0.1", "max_depth": "100.0", "width_multiplier": "0.5"}
+    save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(path), metadata=meta)
+    source = NetworkDepth(path, input_size=(64, 96))
+    assert source.model.width == 0.5
+    image = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        torch.testing.assert_close(source.network_depth(image), net.depth(image))
+    bad = tmp_path / "bad.safetensors"
+    save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(bad), metadata={**meta,
+                                                                                            "width_multiplier": "-1"})
+    with pytest.raises(ValueError, match="depth.checkpoint: .*width_multiplier.*'-1'"):
+        NetworkDepth(bad)
+
+
+@pytest.fixture(scope="module")
+def sample() -> dict:
+    """One synthetic stereo + temporal sample."""
+    world = SyntheticWorld(seed=0, num_frames=6, height=H, width=W, scenario="straight")
+    f = world.render(2, right=True, flow=True)
+    return {"image": f["image"][None], "image_right": f["image_right"][None], "image_next": world.image(3)[None],
+            "image_prev": world.image(1)[None], "K": f["K"][None].float(),
+            "T_right_left": f["T_right_left"][None].float()}
+
+
+def _module(teacher: Path, width: float, augment: dict | None = None):
+    from dfvo.training.depth_module import DepthPoseModule
+
+    cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "init_depth": 10.0, "width": width,
+                                      "teacher": str(teacher), "w_distill": 1.0, "augment": augment},
+                            "data": {"seed": 0}})
+    return DepthPoseModule(cfg).eval()
+
+
+def _save(net: DepthNet, path: Path) -> Path:
+    meta = {"task": "depth", "min_depth": "0.1", "max_depth": "100.0", "width_multiplier": repr(net.width)}
+    save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(path), metadata=meta)
+    return path
+
+
+def test_distillation_term_is_the_students_distance_to_the_teacher(tmp_path: Path, sample: dict) -> None:
+    """The distillation term at scale 0 is the log-depth L1 between the student's depth and the teacher's: ~0 for a
+    student that is the teacher (same width, same weights), the hand-computed value for a half-width student. The
+    teacher is in neither the checkpoint's state dict nor the optimiser."""
+    torch.manual_seed(3)
+    teacher_net = DepthNet(init_depth=10.0)
+    with torch.no_grad():  # a teacher whose depth varies over the image (the untrained one is nearly flat)
+        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
+    teacher_net.eval()
+    path = _save(teacher_net, tmp_path / "teacher.safetensors")
+
+    same = _module(path, 1.0)
+    same.depth_net.load_state_dict(teacher_net.state_dict())
+    with torch.no_grad():
+        _, terms, _ = same._losses(sample, None)
+    assert float(terms["distill_s0"]) < 1e-5, terms["distill_s0"]
+
+    student = _module(path, 0.5)
+    with torch.no_grad():
+        _, terms, _ = student._losses(sample, None)
+        expected, _ = log_depth_l1(student(sample["image"]), teacher_net.depth(sample["image"]), 100.0)
+    assert float(terms["distill_s0"]) > 0.05
+    torch.testing.assert_close(terms["distill_s0"], expected, rtol=1e-4, atol=1e-6)
+    assert not any(k.startswith("_teacher") or "teacher" in k for k in student.state_dict())
+    assert student.export_network()[1]["width_multiplier"] == "0.5"
+    owned = {id(p) for p in student.parameters()}
+    assert all(id(p) not in owned for p in teacher_net.parameters())
+    assert all(id(p) not in owned for p in student._teacher[0].parameters())
+
+
+def test_the_teacher_sees_the_image_without_shadows(tmp_path: Path, sample: dict) -> None:
+    """With ``augment.shadow_prob=1`` the student sees the shadowed image and the teacher the same image without the
+    shadows, so the student is taught the depth of the scene, not of its shadows."""
+    path = _save(DepthNet(init_depth=10.0).eval(), tmp_path / "teacher.safetensors")
+    module = _module(path, 0.5, {"flip_prob": 0.0, "jitter_prob": 0.0, "shadow_prob": 1.0})
+    seen: dict[str, torch.Tensor] = {}
+
+    def student_input(m: torch.nn.Module, args: tuple, out: object) -> None:
+        seen.setdefault("student", args[0])
+
+    module.depth_net.register_forward_hook(student_input)
+    original = module._teacher[0].disparity
+
+    def record(image: torch.Tensor) -> torch.Tensor:
+        seen.setdefault("teacher", image)
+        return original(image)
+
+    module._teacher[0].disparity = record
+    with torch.no_grad():
+        module.training_step(sample, 0)
+    _, net = augment_depth_batch(sample, module.augment, torch.Generator().manual_seed(0))
+    assert torch.equal(seen["student"][:1], net["image_depth"])
+    assert torch.allclose(seen["teacher"], sample["image"], atol=1e-6)
+    assert (net["image_depth"] < sample["image"] - 1e-3).any()
+
+
+def test_distillation_settings_are_checked() -> None:
+    """w_distill without a teacher, a non-positive width: one line naming the key."""
+    from dfvo.training.config import DepthModelConfig
+
+    with pytest.raises(ValueError, match="model.w_distill=1.0 needs model.teacher"):
+        DepthModelConfig(name="depth_stereo", w_distill=1.0)
+    with pytest.raises(ValueError, match="model.width=0"):
+        DepthModelConfig(name="depth_stereo", width=0)
