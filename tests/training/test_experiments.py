@@ -153,14 +153,14 @@ def test_depth_hints_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
 
 def test_depth_small_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
     """`python train.py experiment=depth_small trainer=smoke` (tiny): the half-width network distils from the network
-    at RUNS/depth_scene/weights.safetensors (here a saved full-width one), the distillation terms are logged, and the
-    export records its width."""
+    at RUNS/depth_scene_shadow/weights.safetensors (here a saved full-width one), the distillation terms are logged,
+    and the export records its width."""
     from safetensors import safe_open
     from safetensors.torch import save_file
 
     from dfvo.models.depth_net import DepthNet
 
-    teacher = tmp_path / "depth_scene" / "weights.safetensors"
+    teacher = tmp_path / "depth_scene_shadow" / "weights.safetensors"
     teacher.parent.mkdir()
     save_file({k: v.contiguous() for k, v in DepthNet(init_depth=10.0).state_dict().items()}, str(teacher),
               metadata={"task": "depth", "width_multiplier": "1.0"})
@@ -169,3 +169,14 @@ def test_depth_small_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
     assert out["module"].depth_net.encoder.num_ch_enc == (32, 32, 64, 128, 256)
     with safe_open(str(tmp_path / "depth_small" / "weights.safetensors"), "pt") as f:
         assert f.metadata()["width_multiplier"] == "0.5"
+
+
+def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path: Path) -> None:
+    """depth_scene_shadow starts from depth_scene's last.ckpt and depth_small distils from depth_scene_shadow's export,
+    both in the runs folder the campaign passes (``runs_dir``, ``~`` expanded)."""
+    shadow = model_config(_compose("experiment=depth_scene_shadow", f"runs_dir={tmp_path}"))
+    assert shadow.init_from == str(tmp_path / "depth_scene" / "checkpoints" / "last.ckpt")
+    assert shadow.augment.shadow_prob == 0.5
+    small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
+    assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
+    assert small.width == 0.5 and small.w_distill > 0
