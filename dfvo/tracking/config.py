@@ -46,6 +46,15 @@ class ModelSelectionMethod(StrEnum):
     flow = "flow"
 
 
+class PlanarMotion(StrEnum):
+    """What tracks a pair whose correspondences a homography explains (GRIC prefers H; ``tracker.model_selection.
+    planar``): ``pnp`` (the paper: the PnP-tracker on the CNN depth) or ``homography`` (the homography's own
+    decomposition gives R and the translation's direction, scaled like an E-tracker's result; PnP when it fails)."""
+
+    pnp = "pnp"
+    homography = "homography"
+
+
 class RoadPoints(StrEnum):
     """The points the road plane is fitted to (``tracker.road_plane.points``; see :class:`RoadPlaneConfig`):
     ``none`` fits none for a scale observation (the photometric road scale, ``tracker.road_alignment``, still uses
@@ -93,6 +102,11 @@ class ModelSelectionConfig:
             ``residual_floor_px`` (the selected flow's noise) (not one plane: on a planar scene E's decomposition is
             ambiguous and GRIC's choice stands). null: the paper (the method alone decides).
             Measured in docs/scale.md (KITTI 07's turns).
+        planar: see :class:`PlanarMotion`. With ``homography`` the decomposition whose plane lies in front of the
+            camera (:func:`dfvo.geometry.homography.decompose_homography`) and whose normal is nearest the previous
+            homography frame's plane (else the plane of the CNN depth at its inliers) gives R and the direction, when
+            its translation shows at least ``min_parallax_px`` beyond the rotation; its scale is the E-tracker's (CNN
+            depth, the filter, the gates). Needs ``method=gric``.
     """
 
     method: ModelSelectionMethod = ModelSelectionMethod.gric
@@ -103,9 +117,13 @@ class ModelSelectionConfig:
     min_parallax_px: float | None = 1.0
     min_homography_residual_ratio: float = 2.0
     residual_floor_px: float = 0.05
+    planar: PlanarMotion = PlanarMotion.pnp
 
     def __post_init__(self) -> None:
         self.method = choice(ModelSelectionMethod, self.method, "tracker.model_selection.method")
+        self.planar = choice(PlanarMotion, self.planar, "tracker.model_selection.planar")
+        check(self.planar == PlanarMotion.pnp or self.method == ModelSelectionMethod.gric,
+              f"tracker.model_selection.planar={self.planar.value} needs method=gric (the homography GRIC fits)")
         check(self.h_threshold_px > 0 and self.gric_sigma > 0 and int(self.h_iterations) > 0,
                f"tracker.model_selection: h_threshold_px={self.h_threshold_px}, gric_sigma={self.gric_sigma}, "
                f"h_iterations={self.h_iterations}; expected positive values")

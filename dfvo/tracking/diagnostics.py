@@ -51,6 +51,8 @@ class FrameDiagnostics:
             ``prediction`` when every observation failed), with rejected observations after ``|rejected:``.
         gate_rejected: a plausibility gate rejected a tracker's result on this frame (reason in fallback_reason).
         pnp_success: PnP's result (None when PnP did not run).
+        homography_motion: the E-tracker's R and direction came from the homography's decomposition (a planar scene,
+            ``tracker.model_selection.planar=homography``).
         selection_failed: too few consistent correspondences (constant motion).
         fallback_reason: why the E-tracker's result was not used (None when it was), including the plausibility gates'
             reasons; on an E frame whose scale is the temporal filter's prediction, why.
@@ -84,6 +86,7 @@ class FrameDiagnostics:
     scale_source: str | None = None
     gate_rejected: bool = False
     pnp_success: bool | None = None
+    homography_motion: bool = False
     selection_failed: bool = False
     fallback_reason: str | None = None
     window_tracks: int | None = None

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import torch
 
 from dfvo.geometry.gric import gric_essential, gric_homography
+from dfvo.geometry.homography import HomographyDecomposition, decompose_homography
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, find_homography_ransac
-from dfvo.tracking.config import ModelSelectionMethod, TrackerConfig
+from dfvo.tracking.config import ModelSelectionMethod, PlanarMotion, TrackerConfig
 from dfvo.tracking.model_selection import (
     homography_to_essential_residual,
     prefer_pnp_flow,
@@ -39,6 +40,8 @@ class ETrackerResult:
         parallax_px: (B,) float64 median image motion of E's inliers beyond the rotation (pixels; NaN without
             inliers): what the translation shows in the image.
         valid: (B,) bool, E usable. reasons: why a frame's E is not usable (None when valid).
+        homography: the decompositions of the GRIC homography (``model_selection.planar=homography``; else None),
+            homography_inliers: (B,N) its RANSAC inliers (None likewise).
     """
 
     R: torch.Tensor
@@ -52,13 +55,19 @@ class ETrackerResult:
     parallax_px: torch.Tensor
     valid: torch.Tensor
     reasons: list[str | None]
+    homography: HomographyDecomposition | None = None
+    homography_inliers: torch.Tensor | None = None
 
     def pair(self, b: int) -> ETrackerResult:
         """Pair ``b`` of the batch as a result of batch size 1 (views of the tensors, no copy)."""
         sl = slice(b, b + 1)
+        h = self.homography
         return ETrackerResult(self.R[sl], self.t[sl], self.E[sl], self.inliers[sl], self.num_inliers[sl],
                               self.cheirality_fraction[sl], self.gric_e[sl], self.gric_h[sl], self.parallax_px[sl],
-                              self.valid[sl], [self.reasons[b]])
+                              self.valid[sl], [self.reasons[b]],
+                              None if h is None else HomographyDecomposition(h.R[sl], h.t_over_d[sl], h.n[sl],
+                                                                              h.in_front[sl]),
+                              None if self.homography_inliers is None else self.homography_inliers[sl])
 
 
 def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
@@ -96,6 +105,10 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
                                                                   mask & ransac.inliers, sel.residual_floor_px)
                                  >= sel.min_homography_residual_ratio)
         pnp_wanted = pnp_wanted & ~visible
+    decomposition, h_inliers = None, None
+    if sel.method == ModelSelectionMethod.gric and sel.planar == PlanarMotion.homography:
+        h_inliers = mask & H.inliers
+        decomposition = decompose_homography(H.model, K, pts_i, pts_j, h_inliers)
     reasons: list[str | None] = []
     valid = torch.zeros(B, dtype=torch.bool, device=pts_i.device)
     for b in range(B):
@@ -112,7 +125,7 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
             reasons.append(None)
             valid[b] = True
     return ETrackerResult(R, t, ransac.model, ransac.inliers, ransac.num_inliers, cheir, g_e, g_h, parallax, valid,
-                         reasons)
+                         reasons, decomposition, h_inliers)
 
 
 def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor,

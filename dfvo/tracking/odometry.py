@@ -32,7 +32,7 @@ give the same poses whatever the batch size.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import torch
@@ -40,7 +40,7 @@ from kornia.color import rgb_to_grayscale
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
 from dfvo.geometry.se3 import pose_from_rt, se3_inverse
-from dfvo.geometry.two_view import decompose_essential, find_essential_ransac
+from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, normalised_rays
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
 from dfvo.matching.selection import select_correspondences
@@ -162,6 +162,7 @@ class VisualOdometry:
         self.T_w = torch.eye(4, dtype=torch.float64)
         self.last_motion = torch.eye(4, dtype=torch.float64)
         self.last_scale = 0.0
+        self.plane_normal: torch.Tensor | None = None  # (3,) the last homography frame's plane, in its later camera
         if (getattr(self, "fusion", None) is None or self.fusion.cfg is not self.cfg
                 or self.fusion.point_refinement is not self.point_refinement):
             self.fusion = ScaleFusion(self.cfg, self.point_refinement)
@@ -286,6 +287,12 @@ class VisualOdometry:
             reason = e_res.reasons[0]
             if reason is None:
                 T_cur_prev, reason = self._essential_pose(st)
+            elif e_res.homography is not None and reason.startswith("model selection prefers PnP (GRIC"):
+                T_cur_prev, planar = self._homography_pose(st)
+                reason = reason if T_cur_prev is None else None
+                if planar is not None:
+                    diag.add_reason(planar)
+                e_res = st.essential
             if T_cur_prev is None:
                 diag.add_reason(reason)
                 if cfg.mode == TrackerMode.hybrid:
@@ -297,6 +304,8 @@ class VisualOdometry:
             T_prev_cur = se3_inverse(T_cur_prev)
         self.last_motion = T_prev_cur
         self.last_scale = float(T_prev_cur[:3, 3].norm())
+        if not diag.homography_motion or T_cur_prev is None:
+            self.plane_normal = None
         self.frame += 1
         rows = st.rows
         used_e = e_res is not None and diag.tracker == TrackerUsed.essential
@@ -341,16 +350,17 @@ class VisualOdometry:
         diag.window_rejected = res.rejected
         return T_prev_cur if res.T_prev_cur is None else res.T_prev_cur
 
-    def _essential_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
+    def _essential_pose(self, st: FrameState, refine: bool = True) -> tuple[torch.Tensor | None, str | None]:
         """The E-tracker's pose ``T_cur_prev`` (4,4) with its scale (iterative scale, fusion, gates), or None and
-        the reason it was not usable."""
+        the reason it was not usable (``refine``: the iterative scale may re-estimate E; not for a homography's
+        motion)."""
         cfg = self.cfg
         e_res, diag, gen = st.essential, st.diagnostics, st.generator
         pi, pj, mask, depth, K = st.pts_prev, st.pts_cur, st.mask, st.depth, st.K
         R, t = e_res.R, e_res.t
         s, ok = st.scale, st.scale_ok
         diag.num_inliers = int(e_res.num_inliers[0])
-        if cfg.scale.method == ScaleMethod.iterative:
+        if cfg.scale.method == ScaleMethod.iterative and refine:
             z_cnn, z_ok = sample_depth(depth, pi, cfg.scale.max_depth, cfg.scale.depth_crop_top)
 
             def estimate(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -408,6 +418,49 @@ class VisualOdometry:
             s = predicted
         diag.tracker, diag.scale = TrackerUsed.essential, s
         return pose_from_rt(R, s * t)[0], None
+
+    def _homography_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
+        """A planar pair's pose ``T_cur_prev`` (4,4) from the homography (``model_selection.planar=homography``): R
+        and the translation's direction of the decomposition that puts the plane in front of the camera and whose
+        normal is nearest the previous homography frame's plane (else the plane of the CNN depth at the homography's
+        inliers), scaled and gated as the E-tracker's (:meth:`_essential_pose`), or None and why not."""
+        cfg, e_res = self.cfg, st.essential
+        h, rows = e_res.homography, e_res.homography_inliers[0]
+        ok = (h.in_front[0] >= 0.9) & (h.t_over_d[0].norm(dim=-1) > 1e-9)
+        if not bool(ok.any()):
+            return None, "homography: no decomposition puts the plane in front of the camera"
+        prior = self.plane_normal if self.plane_normal is not None else self._depth_plane_normal(st, rows)
+        score = h.n[0] @ prior if prior is not None else h.in_front[0]
+        m = int(torch.where(ok, score, torch.full_like(score, -float("inf"))).argmax())
+        R, t = h.R[0, m], h.t_over_d[0, m] / h.t_over_d[0, m].norm()
+        parallax = image_parallax_px(st.pts_prev[0][rows], st.pts_cur[0][rows], R, st.K[0], quantile=0.5)
+        min_px = cfg.model_selection.min_parallax_px
+        if parallax is None or (min_px is not None and parallax < min_px):
+            return None, f"homography: translation not visible ({parallax or 0.0:.2f} px beyond the rotation)"
+        s, s_ok = essential_scale(R[None], t[None], st.pts_prev, st.pts_cur, rows[None], st.depth, st.K, cfg,
+                                  [st.generator], st.depth_next)
+        st.essential = replace(e_res, R=R[None], t=t[None], inliers=rows[None], num_inliers=rows.sum()[None],
+                               reasons=[None])
+        st.scale, st.scale_ok = float(s[0]), bool(s_ok[0])
+        st.diagnostics.homography_motion = True
+        T, reason = self._essential_pose(st, refine=False)
+        if T is None:
+            st.diagnostics.homography_motion = False
+            st.essential = e_res
+            return None, f"homography: {reason}"
+        self.plane_normal = R @ h.n[0, m]
+        return T, None
+
+    def _depth_plane_normal(self, st: FrameState, rows: torch.Tensor) -> torch.Tensor | None:
+        """(3,) unit normal, facing away from the camera, of the plane fitted (least squares) to the earlier frame's
+        CNN depth at the correspondence ``rows`` (N,) bool; None with fewer than 3 usable points."""
+        z, usable = sample_depth(st.depth, st.pts_prev, self.cfg.scale.max_depth, self.cfg.scale.depth_crop_top)
+        use = usable[0] & rows
+        if int(use.sum()) < 3:
+            return None
+        X = normalised_rays(st.pts_prev[0][use][None], st.K)[0] * z[0][use][:, None]
+        normal = torch.linalg.svd(X - X.mean(0), full_matrices=False).Vh[-1]
+        return normal * torch.sign(normal @ X.mean(0))
 
     def _new_direction(self, st: FrameState, direction: torch.Tensor, reason: str | None) -> str | None:
         """The direction gate's verdict ``reason`` on ``direction`` (3,), overruled when the results of the last
