@@ -102,11 +102,12 @@ class ModelSelectionConfig:
             ``residual_floor_px`` (the selected flow's noise) (not one plane: on a planar scene E's decomposition is
             ambiguous and GRIC's choice stands). null: the paper (the method alone decides).
             Measured in docs/scale.md (KITTI 07's turns).
-        planar: see :class:`PlanarMotion`. With ``homography`` the decomposition whose plane lies in front of the
-            camera (:func:`dfvo.geometry.homography.decompose_homography`) and whose normal is nearest the previous
-            homography frame's plane (else the plane of the CNN depth at its inliers) gives R and the direction, when
-            its translation shows at least ``min_parallax_px`` beyond the rotation; its scale is the E-tracker's (CNN
-            depth, the filter, the gates). Needs ``method=gric``.
+        planar: see :class:`PlanarMotion`. With ``homography``, of the decompositions that put most of the plane's
+            inliers in front of the camera (:func:`dfvo.geometry.homography.decompose_homography`) the one whose
+            plane best explains the shape of the CNN depth there (its inverse depth up to scale; without depth, the
+            one nearest the previous homography frame's plane) gives R and the direction, when its translation shows
+            at least ``min_parallax_px`` beyond the rotation; its scale is the E-tracker's (CNN depth, the filter,
+            the gates). Needs ``method=gric``.
     """
 
     method: ModelSelectionMethod = ModelSelectionMethod.gric

@@ -421,16 +421,20 @@ class VisualOdometry:
 
     def _homography_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
         """A planar pair's pose ``T_cur_prev`` (4,4) from the homography (``model_selection.planar=homography``): R
-        and the translation's direction of the decomposition that puts the plane in front of the camera and whose
-        normal is nearest the previous homography frame's plane (else the plane of the CNN depth at the homography's
-        inliers), scaled and gated as the E-tracker's (:meth:`_essential_pose`), or None and why not."""
+        and the translation's direction of the decomposition that puts most of the plane in front of the camera and
+        whose plane best explains the shape of the CNN depth at the homography's inliers (:meth:`_depth_agreement`;
+        without usable depth, the one nearest the previous homography frame's plane), scaled and gated as the
+        E-tracker's (:meth:`_essential_pose`), or None and why not."""
         cfg, e_res = self.cfg, st.essential
         h, rows = e_res.homography, e_res.homography_inliers[0]
-        ok = (h.in_front[0] >= 0.9) & (h.t_over_d[0].norm(dim=-1) > 1e-9)
+        # of each pair of opposite signs the one that puts most inliers in front (distant points that fit any
+        # homography, e.g. above a road's horizon, put some behind the true plane)
+        ok = (h.in_front[0] > 0.5) & (h.t_over_d[0].norm(dim=-1) > 1e-9)
         if not bool(ok.any()):
             return None, "homography: no decomposition puts the plane in front of the camera"
-        prior = self.plane_normal if self.plane_normal is not None else self._depth_plane_normal(st, rows)
-        score = h.n[0] @ prior if prior is not None else h.in_front[0]
+        score = self._depth_agreement(st, rows, h.n[0])
+        if score is None:  # no usable depth: the previous homography frame's plane, else the most points in front
+            score = h.n[0] @ self.plane_normal if self.plane_normal is not None else h.in_front[0]
         m = int(torch.where(ok, score, torch.full_like(score, -float("inf"))).argmax())
         R, t = h.R[0, m], h.t_over_d[0, m] / h.t_over_d[0, m].norm()
         parallax = image_parallax_px(st.pts_prev[0][rows], st.pts_cur[0][rows], R, st.K[0], quantile=0.5)
@@ -451,16 +455,20 @@ class VisualOdometry:
         self.plane_normal = R @ h.n[0, m]
         return T, None
 
-    def _depth_plane_normal(self, st: FrameState, rows: torch.Tensor) -> torch.Tensor | None:
-        """(3,) unit normal, facing away from the camera, of the plane fitted (least squares) to the earlier frame's
-        CNN depth at the correspondence ``rows`` (N,) bool; None with fewer than 3 usable points."""
+    def _depth_agreement(self, st: FrameState, rows: torch.Tensor, normals: torch.Tensor) -> torch.Tensor | None:
+        """(M,) how well each candidate plane (unit ``normals`` (M,3) in the earlier camera) explains the earlier
+        frame's CNN depth at the correspondence ``rows`` (N,) bool: a plane ``n^T X = d`` puts a pixel's inverse depth
+        at ``n^T x / d``, so 1 minus the fraction of the CNN inverse depths' energy left unexplained by the best
+        multiple of ``n^T x`` (the network's scale does not matter, only the plane's shape); None with fewer than 8
+        usable points."""
         z, usable = sample_depth(st.depth, st.pts_prev, self.cfg.scale.max_depth, self.cfg.scale.depth_crop_top)
         use = usable[0] & rows
-        if int(use.sum()) < 3:
+        if int(use.sum()) < 8:
             return None
-        X = normalised_rays(st.pts_prev[0][use][None], st.K)[0] * z[0][use][:, None]
-        normal = torch.linalg.svd(X - X.mean(0), full_matrices=False).Vh[-1]
-        return normal * torch.sign(normal @ X.mean(0))
+        a = normalised_rays(st.pts_prev[0][use][None], st.K)[0] @ normals.T  # (P,M): n^T x per point and plane
+        b = (1.0 / z[0][use])[:, None]
+        k = (a * b).sum(0) / (a * a).sum(0).clamp_min(1e-30)
+        return 1.0 - ((b - k * a) ** 2).sum(0) / (b * b).sum(0).clamp_min(1e-30)
 
     def _new_direction(self, st: FrameState, direction: torch.Tensor, reason: str | None) -> str | None:
         """The direction gate's verdict ``reason`` on ``direction`` (3,), overruled when the results of the last
