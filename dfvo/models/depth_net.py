@@ -110,9 +110,14 @@ class ConvBlock(nn.Module):
 
 
 class DepthDecoder(nn.Module):
-    """U-Net style decoder over the 5 ResNet feature maps; disparity heads at scales 0..3."""
+    """U-Net style decoder over the 5 ResNet feature maps; disparity heads at scales 0..3.
 
-    def __init__(self, num_ch_enc: tuple[int, ...], channels: tuple[int, ...] = DECODER_CHANNELS) -> None:
+    Args:
+        num_ch_enc: the encoder maps' channels (finest first). channels: the decoder's 5 levels' channels (finest
+            first; :data:`DECODER_CHANNELS` for the monodepth2 network, scaled by ``DepthNet(width=...)``).
+    """
+
+    def __init__(self, num_ch_enc: tuple[int, ...], channels: tuple[int, ...]) -> None:
         super().__init__()
         self.up0 = nn.ModuleList()
         self.up1 = nn.ModuleList()
