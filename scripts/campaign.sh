@@ -15,7 +15,7 @@
 # Environment: DFVO_RUNS_DIR (the runs folder, default ~/dfvo-runs), DFVO_KITTI_RAW_ROOT (default
 # ../shared/data/kitti_raw beside the repository), CAMPAIGN_QUEUE (default scripts/campaign.queue),
 # CAMPAIGN_THREADS (torch threads, default 1), PYTHON (default python), CAMPAIGN_CODE (run this folder's code
-# instead of HEAD's export: tests).
+# instead of HEAD's export: tests), CAMPAIGN_SNAPSHOT (the committed state's folder, default campaign/: tests).
 # Files: RUNS/campaign.log (every run's log lines, appended), RUNS/campaign.pid (the queue while it runs),
 # RUNS/code/SHA (the code the queue runs),
 # RUNS/NAME/ (each run: checkpoints/last.ckpt, weights.safetensors, finished.json when done).
@@ -28,7 +28,7 @@ PYTHON="${PYTHON:-python}"
 LOG="$RUNS/campaign.log"
 PIDFILE="$RUNS/campaign.pid"
 STOPFILE="$RUNS/campaign.stop"
-SNAPSHOT="$REPO/campaign"
+SNAPSHOT="${CAMPAIGN_SNAPSHOT:-$REPO/campaign}"
 CODE_ROOT="$RUNS/code"
 export DFVO_KITTI_RAW_ROOT="${DFVO_KITTI_RAW_ROOT:-$REPO/../shared/data/kitti_raw}"
 
@@ -48,7 +48,14 @@ running_pid() {
 
 restore() {  # a run with no checkpoint here, whose state was committed in campaign/NAME/, continues from it
   local name="$1" dir="$RUNS/$1"
-  if [ ! -f "$dir/checkpoints/last.ckpt" ] && [ -f "$SNAPSHOT/$name/last.ckpt" ]; then
+  if [ ! -f "$dir/finished.json" ] && [ ! -f "$dir/checkpoints/last.ckpt" ] && [ -f "$SNAPSHOT/$name/finished.json" ] \
+      && [ -f "$SNAPSHOT/$name/weights.safetensors" ]; then  # a finished run: its network, for the runs after it
+    mkdir -p "$dir"
+    cp "$SNAPSHOT/$name/weights.safetensors" "$dir/weights.safetensors"
+    cp "$SNAPSHOT/$name/finished.json" "$dir/finished.json"
+    say "$name: restored the committed finished run ($SNAPSHOT/$name/: weights.safetensors, finished.json)"
+  fi
+  if [ ! -f "$dir/checkpoints/last.ckpt" ] && [ ! -f "$dir/finished.json" ] && [ -f "$SNAPSHOT/$name/last.ckpt" ]; then
     mkdir -p "$dir/checkpoints"
     cp "$SNAPSHOT/$name/last.ckpt" "$dir/checkpoints/last.ckpt"
     say "$name: restored the committed state $SNAPSHOT/$name/last.ckpt"
@@ -78,11 +85,11 @@ run_queue() {
   say "queue $QUEUE, runs in $RUNS, $THREADS thread(s), code $code"
   while IFS=$'\t' read -r name overrides; do
     [ -f "$STOPFILE" ] && break
+    restore "$name"
     if [ -f "$RUNS/$name/finished.json" ]; then
       say "$name: finished ($(tr -d '\n ' < "$RUNS/$name/finished.json")); next"
       continue
     fi
-    restore "$name"
     say "$name: start or resume: train.py $overrides"
     # shellcheck disable=SC2086  # the overrides are words of the queue line
     (cd "$code" && OMP_NUM_THREADS="$THREADS" exec "$PYTHON" train.py $overrides name="$name" runs_dir="$RUNS" \
@@ -128,11 +135,22 @@ stop() {
   fi
 }
 
-snapshot() {  # the resumable state of each unfinished run, when small (< 50 MB: flow runs); weights otherwise
+snapshot() {  # the resumable state of each unfinished run, when small (< 50 MB: flow runs), weights otherwise; a
+  # finished run's weights and finished.json (a new machine skips it, and the runs after it find its network)
   while IFS=$'\t' read -r name _; do
     local dir="$RUNS/$name"
+    if [ -f "$dir/finished.json" ]; then
+      [ -f "$dir/weights.safetensors" ] || continue
+      if ! cmp -s "$dir/weights.safetensors" "$SNAPSHOT/$name/weights.safetensors" \
+          || ! cmp -s "$dir/finished.json" "$SNAPSHOT/$name/finished.json"; then
+        mkdir -p "$SNAPSHOT/$name"
+        rm -f "$SNAPSHOT/$name/last.ckpt"
+        cp "$dir/weights.safetensors" "$dir/finished.json" "$SNAPSHOT/$name/"
+        echo "campaign: $name: finished: weights.safetensors and finished.json -> $SNAPSHOT/$name/"
+      fi
+      continue
+    fi
     [ -f "$dir/checkpoints/last.ckpt" ] || continue
-    [ -f "$dir/finished.json" ] && continue
     mkdir -p "$SNAPSHOT/$name"
     local size; size=$(stat -c %s "$dir/checkpoints/last.ckpt")
     if [ "$size" -lt 50000000 ]; then

@@ -20,9 +20,10 @@ TINY = ("model=flow_mix data=flow_mix model.variant=tiny data.height=32 data.wid
 pytestmark = pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
 
 
-def _campaign(runs: Path, queue: Path, *args: str) -> subprocess.CompletedProcess:
+def _campaign(runs: Path, queue: Path, *args: str, extra_env: dict[str, str] | None = None
+              ) -> subprocess.CompletedProcess:
     env = {**os.environ, "DFVO_RUNS_DIR": str(runs), "CAMPAIGN_QUEUE": str(queue), "CAMPAIGN_CODE": str(REPO),
-           "OMP_NUM_THREADS": "1"}
+           "OMP_NUM_THREADS": "1", **(extra_env or {})}
     return subprocess.run(["bash", str(SCRIPT), *args], capture_output=True, text=True, env=env, timeout=600)
 
 
@@ -58,3 +59,32 @@ def test_start_refuses_a_python_without_the_project(tmp_path: Path) -> None:
                          text=True, timeout=60)
     assert res.returncode == 2 and "PYTHON=/bin/false cannot import" in res.stderr
     assert not (runs / "campaign.pid").exists() and not (runs / "first").exists()
+
+
+def test_snapshot_and_restore_carry_the_queue_to_a_new_machine(tmp_path: Path) -> None:
+    """`snapshot` commits a finished run's network and finished.json and an unfinished run's small last.ckpt; on a new
+    machine (an empty runs folder) the queue skips the finished run, whose network the runs after it find in its
+    folder, and resumes the unfinished one from its checkpoint."""
+    runs, queue, snap = tmp_path / "runs", tmp_path / "queue", tmp_path / "campaign"
+    env = {"CAMPAIGN_SNAPSHOT": str(snap)}
+    queue.write_text(f"first  {TINY} trainer.max_steps=10\nsecond {TINY}\n")
+    (runs / "second" / "checkpoints").mkdir(parents=True)
+    (runs / "second" / "checkpoints" / "last.ckpt").write_bytes(b"not a real checkpoint")
+    queue_first = tmp_path / "queue_first"
+    queue_first.write_text(f"first  {TINY} trainer.max_steps=10\n")
+    assert _campaign(runs, queue_first, "run").returncode == 0
+    res = _campaign(runs, queue, "snapshot", extra_env=env)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in (snap / "first").iterdir()) == ["finished.json", "weights.safetensors"]
+    weights = (runs / "first" / "weights.safetensors").read_bytes()
+    assert (snap / "first" / "weights.safetensors").read_bytes() == weights
+    assert (snap / "second" / "last.ckpt").read_bytes() == b"not a real checkpoint"
+    assert "first: finished: weights.safetensors and finished.json" in res.stdout
+    assert "first" not in _campaign(runs, queue, "snapshot", extra_env=env).stdout  # unchanged: nothing copied
+
+    new = tmp_path / "new_machine"
+    res = _campaign(new, queue_first, "run", extra_env=env)
+    log = (new / "campaign.log").read_text()
+    assert "first: restored the committed finished run" in log and "first: finished ({" in log and "; next" in log
+    assert (new / "first" / "weights.safetensors").read_bytes() == weights
+    assert "start or resume" not in log  # nothing trained again
