@@ -50,10 +50,15 @@ restore() {  # a run with no checkpoint here, whose state was committed in campa
   local name="$1" dir="$RUNS/$1"
   if [ ! -f "$dir/finished.json" ] && [ ! -f "$dir/checkpoints/last.ckpt" ] && [ -f "$SNAPSHOT/$name/finished.json" ] \
       && [ -f "$SNAPSHOT/$name/weights.safetensors" ]; then  # a finished run: its network, for the runs after it
-    mkdir -p "$dir"
-    cp "$SNAPSHOT/$name/weights.safetensors" "$dir/weights.safetensors"
-    cp "$SNAPSHOT/$name/finished.json" "$dir/finished.json"
-    say "$name: restored the committed finished run ($SNAPSHOT/$name/: weights.safetensors, finished.json)"
+    # finished.json last, each copy whole before its rename: an interrupted restore leaves the run unfinished
+    if mkdir -p "$dir" && cp "$SNAPSHOT/$name/weights.safetensors" "$dir/weights.safetensors.tmp" \
+        && mv "$dir/weights.safetensors.tmp" "$dir/weights.safetensors" \
+        && cp "$SNAPSHOT/$name/finished.json" "$dir/finished.json.tmp" && mv "$dir/finished.json.tmp" "$dir/finished.json"
+    then
+      say "$name: restored the committed finished run ($SNAPSHOT/$name/: weights.safetensors, finished.json)"
+    else
+      say "$name: could not restore the committed finished run from $SNAPSHOT/$name/"
+    fi
   fi
   if [ ! -f "$dir/checkpoints/last.ckpt" ] && [ ! -f "$dir/finished.json" ] && [ -f "$SNAPSHOT/$name/last.ckpt" ]; then
     mkdir -p "$dir/checkpoints"

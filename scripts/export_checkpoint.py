@@ -25,8 +25,8 @@ from pathlib import Path
 
 import torch
 
-from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, CheckpointError, load_weights, save_weights
-from dfvo.models.depth_net import DepthNet
+from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, CheckpointError, load_weights, read_state_dict, save_weights
+from dfvo.models.depth_net import DepthNet, network_width
 from dfvo.models.flow_net import FlowNet
 from dfvo.sources.networks import VARIANTS
 from dfvo.training.export import weights_metadata
@@ -34,19 +34,22 @@ from dfvo.training.export import weights_metadata
 
 def _checkpoint_info(path: Path) -> dict:
     """Step, epoch, model identity, trained size (``data.height``/``width``) and depth network width
-    (``model.width``) of a train.py checkpoint."""
+    (``model.width_multiplier``) of a train.py checkpoint."""
     obj = torch.load(path, map_location="cpu", weights_only=False) if path.suffix == ".ckpt" else {}
     cfg = ((obj.get("hyper_parameters") or {}).get("cfg") or {}) if isinstance(obj, dict) else {}
     data, model = cfg.get("data") or {}, cfg.get("model") or {}
     return {"global_step": obj.get("global_step"), "epoch": obj.get("epoch"), "identity": obj.get(MODEL_IDENTITY_KEY),
-            "height": data.get("height"), "width": data.get("width"), "net_width": model.get("width", 1.0)}
+            "height": data.get("height"), "width": data.get("width"), "net_width": model.get("width_multiplier")}
 
 
-def build_network(task: str, path: Path, variant: str | None, net_width: float = 1.0
+def build_network(task: str, path: Path, variant: str | None, net_width: float | None = None
                   ) -> tuple[torch.nn.Module, dict[str, str]]:
-    """The network of ``task`` ("flow" or "depth", of channel multiplier ``net_width``) filled from ``path``, and
-    metadata describing it."""
+    """The network of ``task`` ("flow" or "depth", of channel multiplier ``net_width``; None: the file's own, see
+    :func:`dfvo.models.depth_net.network_width`) filled from ``path``, and metadata describing it."""
     if task == "depth":
+        if net_width is None:
+            state, meta = read_state_dict(path, "depth network DepthNet")
+            net_width = network_width(meta, str(path), state)
         net = DepthNet(width=net_width)
         load_weights(net, path, "depth network DepthNet")
         return net.eval(), {"task": "depth", "min_depth": str(net.min_depth), "max_depth": str(net.max_depth),
@@ -80,7 +83,8 @@ def main() -> None:
     if not (height and width):
         raise SystemExit(f"{args.checkpoint}: records no trained size (data.height/width); pass --height and --width")
 
-    net, net_meta = build_network(args.task, args.checkpoint, args.variant, float(info["net_width"]))
+    net, net_meta = build_network(args.task, args.checkpoint, args.variant,
+                                  None if info["net_width"] is None else float(info["net_width"]))
     meta = weights_metadata(net_meta, int(height), int(width), global_step=info["global_step"], epoch=info["epoch"],
                             source=args.checkpoint, identity=info["identity"])
     state = {k: v.detach().to(torch.float16).contiguous() if v.is_floating_point() else v.contiguous()

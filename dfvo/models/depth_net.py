@@ -82,11 +82,15 @@ def fold_batch_norms(encoder: ResNet18Encoder) -> ResNet18Encoder:
     return fused
 
 
-def network_width(meta: dict[str, str], setting: str) -> float:
-    """The channel multiplier (``DepthNet(width=...)``) a weights file's metadata records (``width_multiplier``;
-    absent: 1, the files written before narrower networks existed); ``setting`` names the file's config key in the
+def network_width(meta: dict[str, str], setting: str, state: dict[str, torch.Tensor] | None = None) -> float:
+    """The channel multiplier (``DepthNet(width=...)``) of a weights file: its metadata's ``width_multiplier``; without
+    one (a training checkpoint, a plain state dict, a file written before narrower networks existed) the encoder's
+    first layer in ``state`` (its output channels over 64), else 1. ``setting`` names the file's config key in the
     one-line error for a value that is not a positive number."""
-    raw = meta.get("width_multiplier", "1.0")
+    raw = meta.get("width_multiplier")
+    if raw is None:
+        first = next((v for k, v in (state or {}).items() if k.endswith("encoder.conv1.weight") and v.dim() == 4), None)
+        return 1.0 if first is None else first.shape[0] / 64.0
     try:
         width = float(raw)
     except ValueError:

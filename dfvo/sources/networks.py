@@ -234,8 +234,8 @@ class NetworkDepth:
         self.checkpoint = Path(checkpoint)
         width = 1.0
         if self.checkpoint.is_file():
-            _, meta = read_state_dict(self.checkpoint, "depth network DepthNet", "depth.checkpoint")
-            width = network_width(meta, "depth.checkpoint")
+            state, meta = read_state_dict(self.checkpoint, "depth network DepthNet", "depth.checkpoint")
+            width = network_width(meta, "depth.checkpoint", state)
         self.model = DepthNet(min_depth, max_depth, width=width).to(device).eval()
         meta = load_weights(self.model, self.checkpoint, "depth network DepthNet", "depth.checkpoint")
         self.depth_scale = float(depth_scale)

@@ -10,7 +10,9 @@ Convention:
 Fallback order per frame (paper): (1) correspondence selection fails -> constant motion (the previous
 ``T_prev_cur``; identity at the start); (2) E invalid (too few rows, GRIC prefers H, cheirality) or the scale
 fails -> PnP (tracker="hybrid"; tracker="e" falls back to constant motion); (3) otherwise R from E and
-``t = s * t_unit``. When PnP itself fails the frame also uses constant motion (the official code used identity).
+``t = s * t_unit``. With ``tracker.model_selection.planar=homography`` a pair GRIC gives to H tries the homography's
+decomposition first (R and the direction, scaled as in (3)), then PnP. When PnP itself fails the frame also uses
+constant motion (the official code used identity).
 
 Our additions, each one switch away from the paper: the scale ``s`` may fuse the CNN-depth scale with the
 camera-height prior and, over time, the three-frame relative scale (:mod:`dfvo.tracking.scale_fusion`;
@@ -429,7 +431,10 @@ class VisualOdometry:
         h, rows = e_res.homography, e_res.homography_inliers[0]
         # of each pair of opposite signs the one that puts most inliers in front (distant points that fit any
         # homography, e.g. above a road's horizon, put some behind the true plane)
-        ok = (h.in_front[0] > 0.5) & (h.t_over_d[0].norm(dim=-1) > 1e-9)
+        moved = h.t_over_d[0].norm(dim=-1) > 1e-9
+        if not bool(moved.any()):
+            return None, "homography: no translation (a rotation or a stop)"
+        ok = (h.in_front[0] > 0.5) & moved
         if not bool(ok.any()):
             return None, "homography: no decomposition puts the plane in front of the camera"
         score = self._depth_agreement(st, rows, h.n[0])
@@ -443,14 +448,24 @@ class VisualOdometry:
             return None, f"homography: translation not visible ({parallax or 0.0:.2f} px beyond the rotation)"
         s, s_ok = essential_scale(R[None], t[None], st.pts_prev, st.pts_cur, rows[None], st.depth, st.K, cfg,
                                   [st.generator], st.depth_next)
+        diag = st.diagnostics
+        # what a failed attempt must not leave to the PnP fallback: the frame's state and the E-path diagnostics
+        kept_state = (st.scale, st.scale_ok, st.estimate, st.gate_overruled, st.gated_direction)
+        kept_diag = {k: getattr(diag, k) for k in ("gate_rejected", "num_inliers", "scale_cnn", "scale_height",
+                                                    "scale_homography", "road_alignment_cost", "scale_temporal",
+                                                    "scale_predicted", "cnn_bias", "scale_source", "plane_inliers",
+                                                    "camera_height_fit")}
         st.essential = replace(e_res, R=R[None], t=t[None], inliers=rows[None], num_inliers=rows.sum()[None],
                                reasons=[None])
         st.scale, st.scale_ok = float(s[0]), bool(s_ok[0])
-        st.diagnostics.homography_motion = True
+        diag.homography_motion = True
         T, reason = self._essential_pose(st, refine=False)
         if T is None:
-            st.diagnostics.homography_motion = False
             st.essential = e_res
+            st.scale, st.scale_ok, st.estimate, st.gate_overruled, st.gated_direction = kept_state
+            for k, v in kept_diag.items():
+                setattr(diag, k, v)
+            diag.homography_motion = False
             return None, f"homography: {reason}"
         self.plane_normal = R @ h.n[0, m]
         return T, None
@@ -459,8 +474,8 @@ class VisualOdometry:
         """(M,) how well each candidate plane (unit ``normals`` (M,3) in the earlier camera) explains the earlier
         frame's CNN depth at the correspondence ``rows`` (N,) bool: a plane ``n^T X = d`` puts a pixel's inverse depth
         at ``n^T x / d``, so 1 minus the fraction of the CNN inverse depths' energy left unexplained by the best
-        multiple of ``n^T x`` (the network's scale does not matter, only the plane's shape); None with fewer than 8
-        usable points."""
+        multiple of ``n^T x`` (the network's scale does not matter, only the plane's shape; -1 when that multiple is
+        not positive, a plane behind the camera); None with fewer than 8 usable points."""
         z, usable = sample_depth(st.depth, st.pts_prev, self.cfg.scale.max_depth, self.cfg.scale.depth_crop_top)
         use = usable[0] & rows
         if int(use.sum()) < 8:
@@ -468,7 +483,8 @@ class VisualOdometry:
         a = normalised_rays(st.pts_prev[0][use][None], st.K)[0] @ normals.T  # (P,M): n^T x per point and plane
         b = (1.0 / z[0][use])[:, None]
         k = (a * b).sum(0) / (a * a).sum(0).clamp_min(1e-30)
-        return 1.0 - ((b - k * a) ** 2).sum(0) / (b * b).sum(0).clamp_min(1e-30)
+        explained = 1.0 - ((b - k * a) ** 2).sum(0) / (b * b).sum(0).clamp_min(1e-30)
+        return torch.where(k > 0, explained, torch.full_like(explained, -1.0))  # a plane behind the camera: none
 
     def _new_direction(self, st: FrameState, direction: torch.Tensor, reason: str | None) -> str | None:
         """The direction gate's verdict ``reason`` on ``direction`` (3,), overruled when the results of the last

@@ -193,13 +193,15 @@ class ScaleFilter:
         alone = replace(prior, x=0.0, pxx=UNKNOWN_VAR, pxb=0.0)
         for _, z, hx, hbi, r in observations:
             alone, _ = self._update(alone, z, hx, hbi, r, False)
-        disagree = (gate and prior.known and alone.known and self._agree(observations, prior)
+        agree = self._agree(observations, prior)
+        disagree = (gate and prior.known and alone.known and agree
                     and (alone.x - prior.x) ** 2 > self.gate_sigma ** 2 * (prior.pxx + alone.pxx))
         for name, z, hx, hbi, r in observations:
             s, ok = self._update(s, z, hx, hbi, r, gate)
             (used if ok else rejected).append(name)
         absolute = [u for u in used if u not in ("temporal", "road")]
-        all_rejected = (bool(rejected) and not absolute) or disagree
+        # (observations that contradict each other are not held against the prediction either when each is gated out)
+        all_rejected = ((bool(rejected) and not absolute) and agree) or disagree
         if not s.known:
             return ScaleEstimate(None, "none", predicted, math.exp(s.b), s, rejected)
         source = "+".join(used) if absolute else ("temporal" if temporal_used else "prediction")

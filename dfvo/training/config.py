@@ -109,8 +109,8 @@ class DepthModelConfig:
         init_from: start from these weights (DepthNet ``.safetensors``/``.pt``, or a depth ``.ckpt``; not a resume).
         initialised_from: where a checkpoint's weights started from (written by training, see
             :mod:`dfvo.training.hparams`).
-        width: the depth network's channel multiplier (``DepthNet(width=...)``; 1: the monodepth2 network, 0.5: a
-            cheaper one with about a quarter of its multiply-adds); exports record it.
+        width_multiplier: the depth network's channel multiplier (``DepthNet(width=...)``; 1: the monodepth2 network,
+            0.5: a cheaper one with about a quarter of its multiply-adds; at most 4); exports record it.
         teacher: a trained depth network's weights file (any width): distillation. It sees each sample's image before
             ``augment.shadow_prob``'s shadows (so the student learns to ignore them), in inference mode, and is not
             part of the checkpoints.
@@ -142,7 +142,7 @@ class DepthModelConfig:
     augment: DepthAugmentConfig | None = field(default_factory=DepthAugmentConfig)
     init_from: str | None = None
     initialised_from: str | None = None
-    width: float = 1.0
+    width_multiplier: float = 1.0
     teacher: str | None = None
     w_distill: float = 0.0
 
@@ -162,8 +162,14 @@ class DepthModelConfig:
         if self.w_distill > 0 and not self.teacher:
             raise ValueError(f"model.w_distill={self.w_distill} needs model.teacher (a trained depth network's weights "
                              "file to distil from)")
+        if self.teacher and not self.w_distill > 0:
+            raise ValueError(f"model.teacher={self.teacher} has no effect with model.w_distill={self.w_distill}; "
+                             "expected a positive weight (or no teacher)")
+        if not 0 < self.width_multiplier <= 4:
+            raise ValueError(f"model.width_multiplier={self.width_multiplier}; expected a channel multiplier in "
+                             "(0, 4] (1: the monodepth2 network; the image width is data.width)")
         positive("model", min_depth=self.min_depth, lr=self.lr, lr_drop_fraction=self.lr_drop_fraction,
-                  init_depth=self.init_depth, width=self.width)
+                  init_depth=self.init_depth)
         if self.max_depth <= self.min_depth:
             raise ValueError(f"model.max_depth={self.max_depth}; expected > model.min_depth={self.min_depth}")
 

@@ -24,7 +24,7 @@ the scale's depth ``D_s`` reaches with any source view, plus ``model.w_camera_he
 fitted to the scale-0 depth (no gradient through the fit), held at the sample's known ``camera_height`` (KITTI samples;
 0: none), plus ``model.w_distill`` x the log-depth L1 of that scale's depth against a trained network's
 (``model.teacher``, run in inference mode on the sample's image before the shadows of ``augment.shadow_prob``):
-distillation, e.g. into a narrower network (``model.width``).
+distillation, e.g. into a narrower network (``model.width_multiplier``).
 """
 
 from __future__ import annotations
@@ -84,10 +84,11 @@ class DepthPoseModule(L.LightningModule):
         self.min_depth, self.max_depth = m.min_depth, m.max_depth
         self.lr, self.lr_drop_fraction = m.lr, m.lr_drop_fraction
         self.log_images_every = m.log_images_every
-        self.depth_net = DepthNet(self.min_depth, self.max_depth, m.init_depth, width=m.width)
+        self.depth_net = DepthNet(self.min_depth, self.max_depth, m.init_depth, width=m.width_multiplier)
         self.w_distill = m.w_distill
-        # the teacher in a tuple: not a submodule, so neither the checkpoints nor the optimiser hold it
-        self._teacher: tuple[DepthNet, ...] = (self._load_teacher(str(m.teacher)),) if m.w_distill > 0 else ()
+        # the teacher, loaded when training first needs it (a module rebuilt from a checkpoint for evaluation does
+        # not), in a tuple: not a submodule, so neither the checkpoints nor the optimiser hold it
+        self._teacher: tuple[DepthNet, ...] = ()
         self.pose_net = PoseNet() if self.temporal else None
         self.augment = m.augment
         self.augment_seed = int(cfg.data.seed) if "data" in cfg else 0
@@ -101,13 +102,18 @@ class DepthPoseModule(L.LightningModule):
         return self.depth_net, {"task": "depth", "min_depth": str(self.min_depth), "max_depth": str(self.max_depth),
                                 "width_multiplier": repr(self.depth_net.width)}
 
+    def teacher(self) -> DepthNet:
+        """The distillation teacher of ``model.teacher`` (loaded on the first call): a DepthNet of the width and depth
+        range its file records, in inference mode without gradients."""
+        if not self._teacher:
+            self._teacher = (self._load_teacher(str(self.model_cfg.teacher)),)
+        return self._teacher[0]
+
     def _load_teacher(self, path: str) -> DepthNet:
-        """The distillation teacher of ``model.teacher``: a DepthNet of the width and depth range its file records, in
-        inference mode without gradients."""
         path = str(find_checkpoint(path, "model.teacher"))
-        _, meta = read_state_dict(path, "depth network DepthNet", "model.teacher")
+        state, meta = read_state_dict(path, "depth network DepthNet", "model.teacher")
         teacher = DepthNet(float(meta.get("min_depth", self.min_depth)), float(meta.get("max_depth", self.max_depth)),
-                           width=network_width(meta, "model.teacher"))
+                           width=network_width(meta, "model.teacher", state))
         load_weights(teacher, path, "depth network DepthNet", "model.teacher", task="depth")
         return teacher.eval().requires_grad_(False)
 
@@ -181,9 +187,9 @@ class DepthPoseModule(L.LightningModule):
         # the depth network's input: with shadows cast (augment.shadow_prob) when drawn, else the jittered image
         depth_input = net.get("image_depth", net.get("image", image))
         teacher_depth = None
-        if self._teacher:
+        if self.w_distill > 0:
             with torch.no_grad():
-                teacher_depth = self._teacher[0].to(image.device).depth(net.get("image", image)).float()
+                teacher_depth = self.teacher().to(image.device).depth(net.get("image", image)).float()
         if self.w_consistency > 0:
             keys = {"prev": "image_prev", "next": "image_next"}
             views = [depth_input] + [net.get(keys[s[0]], s[1]) for s in temporal]

@@ -11,7 +11,7 @@ key                   value (strings)
 ``variant``           FlowNet variant (flow)
 ``min_depth``         the DepthNet's depth range in metres (depth)
 ``max_depth``
-``width_multiplier``  the DepthNet's channel multiplier (depth; ``model.width``)
+``width_multiplier``  the DepthNet's channel multiplier (depth; ``model.width_multiplier``)
 ``height``            the input size the network was trained at (inference resizes to it)
 ``width``
 ``global_step``       the training step of the weights; ``epoch`` its epoch

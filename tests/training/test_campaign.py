@@ -88,3 +88,7 @@ def test_snapshot_and_restore_carry_the_queue_to_a_new_machine(tmp_path: Path) -
     assert "first: restored the committed finished run" in log and "first: finished ({" in log and "; next" in log
     assert (new / "first" / "weights.safetensors").read_bytes() == weights
     assert "start or resume" not in log  # nothing trained again
+    res = _campaign(new, queue, "run", extra_env=env)  # the unfinished run comes back from its committed checkpoint
+    log = (new / "campaign.log").read_text()
+    assert "second: restored the committed state" in log
+    assert (new / "second" / "checkpoints" / "last.ckpt").read_bytes() == b"not a real checkpoint"

@@ -1,4 +1,4 @@
-"""Narrower depth networks (``model.width``) and distillation from a trained one (``model.teacher``)."""
+"""Narrower depth networks (``model.width_multiplier``) and distillation from a trained one (``model.teacher``)."""
 
 from __future__ import annotations
 
@@ -66,6 +66,9 @@ def test_a_narrow_networks_file_loads_as_what_it_was(tmp_path: Path) -> None:
     image = torch.rand(1, 3, 64, 96)
     with torch.no_grad():
         torch.testing.assert_close(source.network_depth(image), net.depth(image))
+    plain = tmp_path / "plain.safetensors"  # no metadata (a plain state dict): the width read off the first layer
+    save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(plain))
+    assert NetworkDepth(plain, input_size=(64, 96)).model.width == 0.5
     bad = tmp_path / "bad.safetensors"
     save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(bad), metadata={**meta,
                                                                                             "width_multiplier": "-1"})
@@ -86,8 +89,9 @@ def sample() -> dict:
 def _module(teacher: Path, width: float, augment: dict | None = None):
     from dfvo.training.depth_module import DepthPoseModule
 
-    cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "init_depth": 10.0, "width": width,
-                                      "teacher": str(teacher), "w_distill": 1.0, "augment": augment},
+    cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "init_depth": 10.0,
+                                      "width_multiplier": width, "teacher": str(teacher), "w_distill": 1.0,
+                                      "augment": augment},
                             "data": {"seed": 0}})
     return DepthPoseModule(cfg).eval()
 
@@ -121,11 +125,14 @@ def test_distillation_term_is_the_students_distance_to_the_teacher(tmp_path: Pat
         expected, _ = log_depth_l1(student(sample["image"]), teacher_net.depth(sample["image"]), 100.0)
     assert float(terms["distill_s0"]) > 0.05
     torch.testing.assert_close(terms["distill_s0"], expected, rtol=1e-4, atol=1e-6)
-    assert not any(k.startswith("_teacher") or "teacher" in k for k in student.state_dict())
+    assert not any("teacher" in k for k in student.state_dict())
     assert student.export_network()[1]["width_multiplier"] == "0.5"
-    owned = {id(p) for p in student.parameters()}
-    assert all(id(p) not in owned for p in teacher_net.parameters())
-    assert all(id(p) not in owned for p in student._teacher[0].parameters())
+    optimiser = student.configure_optimizers()
+    optimiser = optimiser["optimizer"] if isinstance(optimiser, dict) else optimiser
+    optimiser = optimiser[0][0] if isinstance(optimiser, tuple) else optimiser
+    trained = {id(p) for group in optimiser.param_groups for p in group["params"]}
+    assert trained and all(id(p) not in trained for p in student.teacher().parameters())
+    assert {id(p) for p in student.depth_net.parameters()} <= trained
 
 
 def test_the_teacher_sees_the_image_without_shadows(tmp_path: Path, sample: dict) -> None:
@@ -139,13 +146,14 @@ def test_the_teacher_sees_the_image_without_shadows(tmp_path: Path, sample: dict
         seen.setdefault("student", args[0])
 
     module.depth_net.register_forward_hook(student_input)
-    original = module._teacher[0].disparity
+    teacher = module.teacher()
+    original = teacher.disparity
 
     def record(image: torch.Tensor) -> torch.Tensor:
         seen.setdefault("teacher", image)
         return original(image)
 
-    module._teacher[0].disparity = record
+    teacher.disparity = record
     with torch.no_grad():
         module.training_step(sample, 0)
     _, net = augment_depth_batch(sample, module.augment, torch.Generator().manual_seed(0))
@@ -155,10 +163,13 @@ def test_the_teacher_sees_the_image_without_shadows(tmp_path: Path, sample: dict
 
 
 def test_distillation_settings_are_checked() -> None:
-    """w_distill without a teacher, a non-positive width: one line naming the key."""
+    """w_distill without a teacher, a teacher without a weight, a channel multiplier that is an image width: one line
+    naming the key."""
     from dfvo.training.config import DepthModelConfig
 
     with pytest.raises(ValueError, match="model.w_distill=1.0 needs model.teacher"):
         DepthModelConfig(name="depth_stereo", w_distill=1.0)
-    with pytest.raises(ValueError, match="model.width=0"):
-        DepthModelConfig(name="depth_stereo", width=0)
+    with pytest.raises(ValueError, match="model.width_multiplier=320"):
+        DepthModelConfig(name="depth_stereo", width_multiplier=320)
+    with pytest.raises(ValueError, match="model.teacher=t.safetensors has no effect"):
+        DepthModelConfig(name="depth_stereo", teacher="t.safetensors")

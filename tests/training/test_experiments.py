@@ -180,4 +180,4 @@ def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path:
     assert shadow.augment.shadow_prob == 0.5
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
-    assert small.width == 0.5 and small.w_distill > 0
+    assert small.width_multiplier == 0.5 and small.w_distill > 0
