@@ -47,11 +47,9 @@ def build_network(task: str, path: Path, variant: str | None, net_width: float |
     """The network of ``task`` ("flow" or "depth", of channel multiplier ``net_width``; None: the file's own, see
     :func:`dfvo.models.depth_net.network_width`) filled from ``path``, and metadata describing it."""
     if task == "depth":
-        if net_width is None:
-            state, meta = read_state_dict(path, "depth network DepthNet")
-            net_width = network_width(meta, str(path), state)
-        net = DepthNet(width=net_width)
-        load_weights(net, path, "depth network DepthNet")
+        contents = read_state_dict(path, "depth network DepthNet")
+        net = DepthNet(width=network_width(contents[1], str(path), contents[0]) if net_width is None else net_width)
+        load_weights(net, path, "depth network DepthNet", contents=contents)
         return net.eval(), {"task": "depth", "min_depth": str(net.min_depth), "max_depth": str(net.max_depth),
                             "width_multiplier": repr(net.width)}
     for name in [variant] if variant else list(VARIANTS):

@@ -122,7 +122,8 @@ def file_task(meta: dict[str, str]) -> str | None:
 
 
 def load_weights(model: nn.Module, path: str | Path, expected: str, setting: str | None = None,
-                 task: str | None = None) -> dict[str, str]:
+                 task: str | None = None, contents: tuple[dict[str, torch.Tensor], dict[str, str]] | None = None
+                 ) -> dict[str, str]:
     """Fill ``model`` from the weights file ``path`` (tensors cast to the model's dtypes).
 
     Args:
@@ -131,6 +132,8 @@ def load_weights(model: nn.Module, path: str | Path, expected: str, setting: str
         setting: the config key the path came from, for messages.
         task: the model kind the file must hold (``flow``, ``depth``), checked against what the file says it holds
             (:func:`file_task`) before the tensors; None: no check.
+        contents: the file's ``(state, metadata)`` when the caller has already read it (:func:`read_state_dict`, e.g.
+            to size the network by it); None: read here.
 
     Returns:
         The file's string metadata.
@@ -141,7 +144,7 @@ def load_weights(model: nn.Module, path: str | Path, expected: str, setting: str
     """
     path = Path(path)
     where = _where(path, setting)
-    state, meta = read_state_dict(path, expected, setting)
+    state, meta = contents if contents is not None else read_state_dict(path, expected, setting)
     found = file_task(meta)
     if task is not None and found is not None and found != task:
         what = f"model identity {meta[MODEL_IDENTITY_KEY]!r}" if meta.get(MODEL_IDENTITY_KEY) else f"task={found!r}"

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK_SHAPE
 from torch import nn
 
+from dfvo.io.checkpoint import PREFIXES
 from dfvo.models.resnet import BasicBlock, ResNet18Encoder, scaled_channels
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)
@@ -88,9 +89,10 @@ def network_width(meta: dict[str, str], setting: str, state: dict[str, torch.Ten
     first layer in ``state`` (its output channels over 64), else 1. ``setting`` names the file's config key in the
     one-line error for a value that is not a positive number."""
     raw = meta.get("width_multiplier")
-    if raw is None:
-        first = next((v for k, v in (state or {}).items() if k.endswith("encoder.conv1.weight") and v.dim() == 4), None)
-        return 1.0 if first is None else first.shape[0] / 64.0
+    if raw is None:  # the depth network's own first layer, under the prefixes load_weights knows (a training
+        # checkpoint holds the pose network's encoder too: "depth_net." comes before "pose_net." there)
+        keys = [p + "encoder.conv1.weight" for p in PREFIXES if p + "encoder.conv1.weight" in (state or {})]
+        return state[keys[0]].shape[0] / 64.0 if keys else 1.0
     try:
         width = float(raw)
     except ValueError:

@@ -114,7 +114,7 @@ class DepthPoseModule(L.LightningModule):
         state, meta = read_state_dict(path, "depth network DepthNet", "model.teacher")
         teacher = DepthNet(float(meta.get("min_depth", self.min_depth)), float(meta.get("max_depth", self.max_depth)),
                            width=network_width(meta, "model.teacher", state))
-        load_weights(teacher, path, "depth network DepthNet", "model.teacher", task="depth")
+        load_weights(teacher, path, "depth network DepthNet", "model.teacher", task="depth", contents=(state, meta))
         return teacher.eval().requires_grad_(False)
 
     def _init_weights_from(self, path: str) -> None:

@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 from safetensors.torch import save_file
 
 from dfvo.losses.depth_supervision import log_depth_l1
-from dfvo.models.depth_net import DepthNet
+from dfvo.models.depth_net import DepthNet, network_width
 from dfvo.synthetic import SyntheticWorld
 from dfvo.training.augment import augment_depth_batch
 
@@ -69,6 +69,10 @@ def test_a_narrow_networks_file_loads_as_what_it_was(tmp_path: Path) -> None:
     plain = tmp_path / "plain.safetensors"  # no metadata (a plain state dict): the width read off the first layer
     save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(plain))
     assert NetworkDepth(plain, input_size=(64, 96)).model.width == 0.5
+    # a training checkpoint's state: the pose network's encoder beside the depth network's, in either order
+    half, pose = DepthNet(width=0.5).state_dict(), DepthNet().encoder.state_dict()
+    mixed = {**{f"pose_net.encoder.{k}": v for k, v in pose.items()}, **{f"depth_net.{k}": v for k, v in half.items()}}
+    assert network_width({}, "depth.checkpoint", mixed) == 0.5
     bad = tmp_path / "bad.safetensors"
     save_file({k: v.contiguous() for k, v in net.state_dict().items()}, str(bad), metadata={**meta,
                                                                                             "width_multiplier": "-1"})
