@@ -429,6 +429,11 @@ class GateConfig:
             constant motion): a hand turns for good from one frame to the next, where the gate would hold the old
             direction for ``max_consecutive`` frames. null (the default): off; a car's E-tracker locked onto a truck
             filling the view also agrees with itself for several frames.
+        confirm_direction_by_pnp_deg: when the direction gate rejects the two-view result (E or the homography)
+            and PnP's result of the same frame, rejected too (by its turn or its length), points within this angle
+            (degrees) of it, the two-view result is accepted: two trackers that share the flow but not the geometry
+            (the epipolar constraint alone; the depth network's points) find the same new direction, so the motion
+            turned. null (the default): off; a car's trackers locked onto a truck filling the view agree too.
     """
 
     enabled: bool = True
@@ -446,6 +451,7 @@ class GateConfig:
     adaptive_window: int = 30
     adaptive_min_changes: int = 8
     confirm_direction_frames: int | None = None
+    confirm_direction_by_pnp_deg: float | None = None
 
     def __post_init__(self) -> None:
         check(self.adaptive_sigmas >= 0 and int(self.adaptive_window) >= 2 and int(self.adaptive_min_changes) >= 1,
@@ -458,6 +464,9 @@ class GateConfig:
                f"{self.max_consecutive} (expected >= 0)")
         check(self.confirm_direction_frames is None or int(self.confirm_direction_frames) >= 2,
               f"tracker.gate.confirm_direction_frames={self.confirm_direction_frames}; expected null (off) or >= 2")
+        check(self.confirm_direction_by_pnp_deg is None or 0.0 < float(self.confirm_direction_by_pnp_deg) < 180.0,
+              f"tracker.gate.confirm_direction_by_pnp_deg={self.confirm_direction_by_pnp_deg}; expected null (off) "
+              "or an angle in (0, 180) degrees")
         check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
                                                       f"{self.min_inlier_fraction}; expected [0, 1)")
 

@@ -34,7 +34,7 @@ give the same poses whatever the batch size.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import torch
@@ -103,6 +103,10 @@ class FrameState:
         estimate: the fused scale the E pose used (None: no fusion, or not an E pose).
         gate_overruled: a gate's rejection was overruled (after ``gate.max_consecutive`` gated frames in a row).
         gated_direction: the direction (3,) of this frame's result that the direction gate rejected (None: none).
+        rejected_directions: the directions (3,) of this frame's results that were rejected, by tracker: ``E``'s by
+            the direction gate, ``PnP``'s by the direction or the length gate.
+        direction_confirmed: the angle (degrees) between E's and PnP's rejected directions once PnP confirmed E's
+            turn (``gate.confirm_direction_by_pnp_deg``); None: not confirmed.
     """
 
     pts_prev: torch.Tensor
@@ -124,6 +128,8 @@ class FrameState:
     estimate: ScaleEstimate | None = None
     gate_overruled: bool = False
     gated_direction: torch.Tensor | None = None
+    rejected_directions: dict[str, torch.Tensor] = field(default_factory=dict)
+    direction_confirmed: float | None = None
 
     @property
     def rows(self) -> torch.Tensor:
@@ -286,19 +292,15 @@ class VisualOdometry:
         elif cfg.mode == TrackerMode.pnp:
             T_cur_prev = self._pnp(st)
         else:
-            reason = e_res.reasons[0]
-            if reason is None:
-                T_cur_prev, reason = self._essential_pose(st)
-            elif e_res.homography is not None and reason.startswith("model selection prefers PnP (GRIC"):
-                T_cur_prev, planar = self._homography_pose(st)
-                reason = reason if T_cur_prev is None else None
-                if planar is not None:
-                    diag.add_reason(planar)
-                e_res = st.essential
+            T_cur_prev, reason = self._epipolar_pose(st)
+            e_res = st.essential
             if T_cur_prev is None:
                 diag.add_reason(reason)
                 if cfg.mode == TrackerMode.hybrid:
                     T_cur_prev = self._pnp(st)
+                if T_cur_prev is None and self._trackers_agree_on_turn(st):
+                    T_cur_prev, _ = self._epipolar_pose(st)
+                    e_res = st.essential
         if T_cur_prev is None:
             T_prev_cur = self.last_motion.clone()
             diag.tracker = TrackerUsed.constant_motion
@@ -352,6 +354,36 @@ class VisualOdometry:
         diag.window_rejected = res.rejected
         return T_prev_cur if res.T_prev_cur is None else res.T_prev_cur
 
+    def _epipolar_pose(self, st: FrameState) -> tuple[torch.Tensor | None, str | None]:
+        """The pose ``T_cur_prev`` (4,4) from the pair's two-view geometry: the E-tracker's, or the homography's where
+        model selection prefers a plane (``model_selection.planar=homography``); or None and why not."""
+        e_res, diag = st.essential, st.diagnostics
+        reason = e_res.reasons[0]
+        if reason is None:
+            return self._essential_pose(st)
+        if e_res.homography is not None and reason.startswith("model selection prefers PnP (GRIC"):
+            T, planar = self._homography_pose(st)
+            if planar is not None:
+                diag.add_reason(planar)
+            return T, reason if T is None else None
+        return None, reason
+
+    def _trackers_agree_on_turn(self, st: FrameState) -> bool:
+        """Whether the direction gate rejected the two-view result while PnP's result, itself rejected by a gate (its
+        turn or its length, not its support), agrees with it within ``gate.confirm_direction_by_pnp_deg`` (two
+        trackers, the epipolar geometry alone and the depth network's points, find the same new direction in the
+        same frame: the motion turned; off by default). Marks the frame so that the gate accepts the two-view
+        direction on the next try (its length is still gated)."""
+        limit = self.cfg.gate.confirm_direction_by_pnp_deg
+        e_dir, pnp_dir = st.rejected_directions.get("E"), st.rejected_directions.get("PnP")
+        if limit is None or e_dir is None or pnp_dir is None or st.direction_confirmed is not None:
+            return False
+        angle = angle_deg(e_dir, pnp_dir)
+        if angle > limit:
+            return False
+        st.direction_confirmed = angle
+        return True
+
     def _essential_pose(self, st: FrameState, refine: bool = True) -> tuple[torch.Tensor | None, str | None]:
         """The E-tracker's pose ``T_cur_prev`` (4,4) with its scale (iterative scale, fusion, gates), or None and
         the reason it was not usable (``refine``: the iterative scale may re-estimate E; not for a homography's
@@ -391,7 +423,7 @@ class VisualOdometry:
         rows = st.rows
         direction = -(R[0].transpose(0, 1) @ t[0])  # T_prev_cur's translation direction (E is never a stop: judged)
         support = self._gate(st, check_support("E", diag.num_inliers, int(rows.sum()), cfg.gate)
-                             or self._new_direction(st, direction, check_direction(
+                             or self._new_direction(st, "E", direction, check_direction(
                                  "E", direction, self.fusion.expected_direction, 1.0, cfg.gate,
                                  self.fusion.motion.direction_deg)))
         if support is not None:
@@ -486,12 +518,21 @@ class VisualOdometry:
         explained = 1.0 - ((b - k * a) ** 2).sum(0) / (b * b).sum(0).clamp_min(1e-30)
         return torch.where(k > 0, explained, torch.full_like(explained, -1.0))  # a plane behind the camera: none
 
-    def _new_direction(self, st: FrameState, direction: torch.Tensor, reason: str | None) -> str | None:
-        """The direction gate's verdict ``reason`` on ``direction`` (3,), overruled when the results of the last
-        ``gate.confirm_direction_frames - 1`` frames, each rejected by this gate, agree with it (within
-        ``gate.max_direction_change_deg`` of it): the motion turned for good (a hand, not a car; off by default)."""
+    def _new_direction(self, st: FrameState, kind: str, direction: torch.Tensor, reason: str | None) -> str | None:
+        """The direction gate's verdict ``reason`` on the ``kind`` (``E``, ``PnP``) tracker's ``direction`` (3,),
+        overruled when the results of the last ``gate.confirm_direction_frames - 1`` frames, each rejected by this
+        gate, agree with it (within ``gate.max_direction_change_deg`` of it): the motion turned for good (a hand, not
+        a car; off by default); or, for ``E``, when PnP's result of this frame confirmed it
+        (:meth:`_trackers_agree_on_turn`)."""
+        if reason is None:
+            return None
+        if st.direction_confirmed is not None and kind == "E":
+            apart = st.direction_confirmed
+            st.diagnostics.add_reason(f"{reason}: accepted, PnP's result turns with it ({apart:.0f} deg apart)")
+            return None
+        st.rejected_directions[kind] = direction
         n = self.cfg.gate.confirm_direction_frames
-        if reason is None or not n:
+        if not n:
             return reason
         recent = self.fusion.gated_directions  # at most n - 1, kept by the frame's end
         if len(recent) == int(n) - 1 and all(angle_deg(direction, d) <= self.cfg.gate.max_direction_change_deg
@@ -542,15 +583,18 @@ class VisualOdometry:
             lifted = (st.depth_next, pj) if st.pnp_backwards else (depth, pi)
             _, usable = sample_depth(*lifted, cfg.scale.max_depth, cfg.scale.depth_crop_top)
             direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])
-            reason = self._gate(st, check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
+            support = check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
+            reason = self._gate(st, support
                                 or check_length("PnP", length, self.fusion.expected_length, cfg.gate,
                                                 image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K),
                                                 self.fusion.expectation_settled, self.fusion.motion.length_ratio)
-                                or self._new_direction(st, direction, check_direction(
+                                or self._new_direction(st, "PnP", direction, check_direction(
                                     "PnP", direction, self.fusion.expected_direction, length, cfg.gate,
                                     self.fusion.motion.direction_deg)))
             if reason is not None:
                 diag.add_reason(reason)
+                if support is None:  # a well-supported direction, rejected for its length or its turn
+                    st.rejected_directions.setdefault("PnP", direction)
                 return None
         diag.tracker, diag.scale = TrackerUsed.pnp, length
         return T[0]

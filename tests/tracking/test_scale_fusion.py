@@ -365,3 +365,37 @@ def test_a_direction_confirmed_by_consecutive_frames_is_accepted() -> None:
     cm = {c: sum(t == "constant_motion" for t in v) for c, v in trackers.items()}
     assert cm[None] >= 4 and cm[2] <= cm[None] - 3, cm
     assert max(errors[2]) < 1.0, errors[2]  # what the confirmation accepted is the true motion
+
+
+def test_a_turn_that_pnp_confirms_in_the_same_frame_is_accepted() -> None:
+    """The same world (exact flow, depth 10x too far): where the hand turns, E and PnP both find the new direction
+    and the direction gate rejects both (constant motion); with ``confirm_direction_by_pnp_deg=30`` E's result is
+    accepted in that very frame (PnP, on depth that is wrong in scale but not in shape, turns with it), and every
+    accepted direction is the true one (exact inputs)."""
+    from dfvo.tracking.config import GateConfig as Gate
+
+    w = SyntheticWorld(seed=1000, num_frames=16, scenario="handheld", height=96, width=320)
+    frames = [w.render(i, right=False) for i in range(16)]
+    ff = torch.stack([f["flow_fwd"] for f in frames[:-1]])
+    fb = torch.stack([f["flow_bwd"] for f in frames[:-1]])
+    d = torch.stack([f["depth"] for f in frames]) * 10.0
+    K = w.intrinsics()
+    poses = w.poses()
+    trackers, errors, confirmed = {}, {}, {}
+    for limit in (None, 30.0):
+        cfg = TrackerConfig(scale=ScaleConfig(camera_height=None), gate=Gate(confirm_direction_by_pnp_deg=limit))
+        res = VisualOdometry(cfg).run(ff, fb, d[:-1], K, depths_next=d[1:])
+        trackers[limit] = [r.diagnostics.tracker for r in res]
+        confirmed[limit] = [k for k, r in enumerate(res) if "PnP's result turns with it" in
+                            (r.diagnostics.fallback_reason or "")]
+        errors[limit] = []
+        for k, r in enumerate(res):
+            t_true = (torch.linalg.inv(poses[k]) @ poses[k + 1])[:3, 3]
+            t = r.T_prev_cur[:3, 3].double()
+            if r.diagnostics.tracker == "E" and t_true.norm() > 1e-6:
+                errors[limit].append(math.degrees(math.acos(float((t @ t_true) / (t.norm() * t_true.norm())))))
+    cm = {c: sum(t == "constant_motion" for t in v) for c, v in trackers.items()}
+    assert cm[None] >= 4 and cm[30.0] <= cm[None] - 3, cm
+    assert confirmed[None] == [] and len(confirmed[30.0]) >= 1, confirmed
+    assert all(trackers[None][k] == "constant_motion" and trackers[30.0][k] == "E" for k in confirmed[30.0])
+    assert max(errors[30.0]) < 1.0, errors[30.0]  # what the confirmation accepted is the true motion
