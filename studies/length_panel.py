@@ -4,16 +4,20 @@ Cases (``--cases``): KITTI odometry 06 at ``data.step`` 1, 2, 3 (1.2, 2.4, 3.6 m
 07 at 1, 2 (its 160 frames, 0.57 m a frame, a 96 deg turn); held-out synthetic worlds (seed 1000, never trained on)
 of each scenario (drive, city, straight, highway; ``--synthetic-frames`` frames each); and, when ``--video`` names an
 H.264 file of KITTI 07's frames (``--make-video`` writes one with PyAV), 07 read as a user's own video with the four
-intrinsics only (no camera height: it is estimated).
+intrinsics only (no camera height: it is estimated); when ``../shared`` beside ``--kitti-root`` holds them, KITTI raw
+drive 0005 (``kitti_raw_0005``: oxts ground truth, an Eigen test drive) and ``handheld_markers`` (210 hand-held
+frames with marker-based poses, run with ``experiment=handheld`` unless the configuration names its own experiment;
+its metric scale is the driving network's: read its true-length RPE and 7-DoF ATE).
 
 Configurations (``--configs``, each a name from :data:`CONFIGS` or ``NAME:override,override``): the defaults, the
 paper (``experiment=paper``), the classical flow (``flow=dis``) and each of issue 24's additions switched off alone.
 
-Per run: RPE (m, deg) and ATE (m) as run (6-DoF alignment) and with every relative translation rescaled to its true
-length (direction and rotation only: :func:`dfvo.eval.error_decomposition.scale_free`), the predicted/true length
-ratio (mean, std), the trackers used and the FPS. Every run's folder stays under ``--out``; the JSON
-(``OUT/panel.json``) is rewritten after each run, so an interrupted panel keeps what it measured; the markdown table
-(``OUT/panel.md``) has one row per configuration and the geometric mean over the cases.
+Per run: RPE (m, deg) and ATE (m) as run (6-DoF alignment; ``ate_7dof_m`` with the scale aligned too) and with every
+relative translation rescaled to its true length (direction and rotation only:
+:func:`dfvo.eval.error_decomposition.scale_free`), the predicted/true length ratio (mean, std), the trackers used and
+the FPS. Every run's folder stays under ``--out``; the JSON (``OUT/panel.json``) is rewritten after each run, so an
+interrupted panel keeps what it measured; the markdown table (``OUT/panel.md``) has one row per configuration and the
+geometric mean over the cases.
 
     python studies/length_panel.py --out runs/length_panel                      # ~25 min on 2 cores
     python studies/length_panel.py --out runs/length_panel --configs default,paper --cases kitti07
@@ -41,6 +45,7 @@ from dfvo.io.trajectory import read_kitti_poses
 
 ROOT = Path(__file__).resolve().parent.parent
 KITTI_07_INTRINSICS = {"fx": 707.0912, "fy": 707.0912, "cx": 601.8873, "cy": 183.1104}  # calib.txt P0 of 07
+HANDHELD_MARKERS_INTRINSICS = {"fx": 420.506712, "fy": 420.610940, "cx": 355.208298, "cy": 250.336787}  # its K.txt
 
 CONFIGS: dict[str, list[str]] = {
     "default": [],
@@ -71,6 +76,15 @@ def cases(args: argparse.Namespace) -> dict[str, list[str]]:
                                                      else f"[{world.speed[0]},{world.speed[1]}]")
         out[f"synthetic_{world.scenario}"] = ["data=synthetic", f"seq={world.scenario}", f"data.seed={world.seed}",
                                               f"data.num_frames={args.synthetic_frames}", f"data.speed={speed}"]
+    shared = Path(args.kitti_root).parent
+    if (shared / "kitti_raw_test" / "2011_09_26" / "2011_09_26_drive_0005_sync").is_dir():
+        out["kitti_raw_0005"] = ["data=kitti_raw", f"data.root={shared / 'kitti_raw_test'}",
+                                 "seq=2011_09_26_drive_0005_sync"]
+    markers = shared / "handheld_markers"
+    if (markers / "images").is_dir():  # a hand-held camera: its own motion model (experiment=handheld)
+        intr = [f"data.{k}={v}" for k, v in HANDHELD_MARKERS_INTRINSICS.items()]
+        out["handheld_markers"] = ["data=folder", f"data.root={markers / 'images'}", *intr,
+                                   f"data.gt={markers / 'poses.txt'}", "data.gt_format=kitti", "experiment=handheld"]
     if args.video:
         intr = [f"data.{k}={v}" for k, v in KITTI_07_INTRINSICS.items()]
         out["kitti07_video"] = ["data=video", f"data.path={args.video}", *intr,
@@ -135,7 +149,9 @@ def metrics(gt: np.ndarray, pred: np.ndarray) -> dict[str, Any]:
 
     def m(traj: np.ndarray) -> dict[str, float]:
         r = evaluate_trajectory(gt, traj, align="6dof")
-        return {"rpe_m": round(r["rpe_m"], 5), "rpe_deg": round(r["rpe_deg"], 5), "ate_m": round(r["ate_m"], 4)}
+        r7 = evaluate_trajectory(gt, traj, align="7dof")
+        return {"rpe_m": round(r["rpe_m"], 5), "rpe_deg": round(r["rpe_deg"], 5), "ate_m": round(r["ate_m"], 4),
+                "ate_7dof_m": round(r7["ate_m"], 4)}
 
     return {"as_run": m(pred), "true_lengths": m(true_lengths),
             "length_ratio": {"mean": round(float(ratio.mean()), 4), "std": round(float(ratio.std()), 4)},
@@ -144,6 +160,8 @@ def metrics(gt: np.ndarray, pred: np.ndarray) -> dict[str, Any]:
 
 def run(name: str, case: list[str], config: list[str], out: Path, threads: int) -> dict[str, Any]:
     folder = out / name
+    if any(o.startswith("experiment=") for o in config):  # the configuration's experiment replaces the case's
+        case = [o for o in case if not o.startswith("experiment=")]
     cmd = [sys.executable, str(ROOT / "infer.py"), *case, *config, f"out_dir={folder}", "progress=false",
            f"num_threads={threads}"]
     started = time.time()
