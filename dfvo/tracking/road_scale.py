@@ -11,7 +11,9 @@ textureless road) nor the depth network's metric scale (whose bias changes with 
 orientation to place the patch and to fix ``n``.
 
 The patch is the road ahead of the camera between ``min_depth`` and ``max_depth`` metres and within ``half_width``
-metres of the camera's line of sight, placed with the depth network's road plane (normal and height); it is split
+metres of the camera's line of sight, placed with the depth network's road plane (normal and height; the pitch
+replaced by the motion's with ``normal_from_motion``, the height by the camera's known or estimated one when the
+network's is implausible: ``max_height_ratio``); it is split
 into blocks (near/far x left/centre/right) whose cost profiles are averaged over the blocks that align well (a car
 or a shadow edge in one block does not move the optimum). Results with a poor best cost, an optimum at the edge of
 the search range, or too few pixels are not used (``reason`` says why).
@@ -156,12 +158,13 @@ def align_road(grey_prev: torch.Tensor, grey_cur: torch.Tensor, K: torch.Tensor,
 
     Args:
         grey_prev, grey_cur: (1,1,H,W). K: (3,3). R: (3,3), t: (3,) unit, of ``T_cur_prev``. normal: (3,) the road
-            normal (down) and ``height`` its distance in metres, from the depth network (they place the patch).
+            normal (down) and ``height`` its distance in metres, from the depth network (or the camera height when
+            the network's is implausible); they place the patch.
         prior_unit_height: the expected result (the camera height over the filter's predicted length): searched first
             within ``cfg.span`` either way; when nothing is found there (or None), the whole ``cfg.wide_range``.
     """
     if not (math.isfinite(height) and height > 0):
-        return RoadAlignment(None, None, 0, "no road plane from the depth network")
+        return RoadAlignment(None, None, 0, f"no road plane to place the patch (height {height})")
     if cfg.normal_from_motion:  # the car moves along its road: no normal component along the translation
         td = t.to(torch.float64).reshape(3)
         normal = normal.to(torch.float64) - (normal.to(torch.float64) @ td) * td

@@ -179,8 +179,14 @@ class ScaleFusion:
         if (ra.enabled and h_m is not None and grey_pair is not None and network_plane is not None
                 and network_plane.normal is not None):
             expected = h_m / math.exp(prior.x) if prior.known else None
-            found = align_road(grey_pair[0], grey_pair[1], K[0], R[0], t[0], network_plane.normal,
-                               float(network_plane.height_unit), ra, expected)
+            # the patch is placed on the network's road, or at the camera height in metres (given or estimated) when
+            # the network's road is implausibly far from it (a network of another scale: its patch would miss the
+            # road ahead; docs/scale.md)
+            placed = float(network_plane.height_unit)
+            if not (math.isfinite(placed) and 1.0 / ra.max_height_ratio <= placed / h_m <= ra.max_height_ratio):
+                placed = float(h_m)
+            found = align_road(grey_pair[0], grey_pair[1], K[0], R[0], t[0], network_plane.normal, placed, ra,
+                               expected)
             diag.road_alignment_cost = found.cost
             if found.unit_height is not None:
                 homography = h_m / found.unit_height

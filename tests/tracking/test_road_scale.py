@@ -140,3 +140,33 @@ def test_cost_profiles_equal_a_plain_per_block_zncc(straight: SyntheticWorld) ->
             want = 1.0 - np.corrcoef(ref[sel], moved[sel])[0, 1]
             assert abs(got[k, s] - want) < 1e-4, (k, s, got[k, s], want)
     assert np.isfinite(got).sum() >= 6 * 5  # most blocks and heights were compared, not skipped
+
+
+@pytest.mark.parametrize("depth_factor", [3.0, 1.0 / 3.0])
+def test_the_road_patch_is_placed_by_the_camera_height_not_the_networks_scale(depth_factor: float) -> None:
+    """A depth network 3x too far or too near (another camera, another scene) places its road 3x too low or high.
+    Its road is implausible against the given camera height (``max_height_ratio``), so the road patch is placed at
+    the camera height and the photometric road scale is the same as with the exact depth, frame for frame (placed by
+    the network's road, the patch fell 18-45 m or 2-5 m ahead and no frame had a road scale)."""
+    from dfvo.tracking.config import ScaleConfig, TrackerConfig
+    from dfvo.tracking.odometry import VisualOdometry
+
+    w = SyntheticWorld(seed=1000, num_frames=8, height=192, width=640, scenario="straight", speed=1.2)
+    frames = [w.render(i, right=False) for i in range(8)]
+    ff = torch.stack([f["flow_fwd"] for f in frames[:-1]])
+    fb = torch.stack([f["flow_bwd"] for f in frames[:-1]])
+    images = torch.stack([w.image(i) for i in range(8)]).float()
+    depth = torch.stack([f["depth"] for f in frames])
+    poses = w.poses()
+    ratios = {}
+    for factor in (1.0, depth_factor):
+        d = depth * factor
+        res = VisualOdometry(TrackerConfig(scale=ScaleConfig(camera_height=CAMERA_HEIGHT))).run(
+            ff, fb, d[:-1], w.intrinsics(), depths_next=d[1:], images=images)
+        lengths = [float((torch.linalg.inv(poses[k]) @ poses[k + 1])[:3, 3].norm()) for k in range(len(res))]
+        ratios[factor] = [None if r.diagnostics.scale_homography is None else r.diagnostics.scale_homography / length
+                          for r, length in zip(res, lengths, strict=True)]
+    exact, scaled = ratios[1.0], ratios[depth_factor]
+    assert all(r is not None and abs(math.log(r)) < 0.06 for r in exact), exact  # the road scale is the truth
+    assert all(s is not None for s in scaled), scaled
+    assert max(abs(math.log(s / r)) for r, s in zip(exact, scaled, strict=True)) < 0.015, (exact, scaled)
