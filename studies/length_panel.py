@@ -158,15 +158,21 @@ def metrics(gt: np.ndarray, pred: np.ndarray) -> dict[str, Any]:
             "direction_error_deg_median": round(float(np.median(direction)), 4)}
 
 
+def infer_overrides(case: list[str], config: list[str]) -> list[str]:
+    """A case's ``infer.py`` overrides followed by a configuration's; a configuration that names an experiment
+    replaces the case's own (``handheld_markers`` runs ``experiment=handheld`` otherwise)."""
+    if any(o.startswith("experiment=") for o in config):
+        case = [o for o in case if not o.startswith("experiment=")]
+    return [*case, *config]
+
+
 def run(name: str, case: list[str], config: list[str], out: Path, threads: int) -> dict[str, Any]:
     folder = out / name
-    if any(o.startswith("experiment=") for o in config):  # the configuration's experiment replaces the case's
-        case = [o for o in case if not o.startswith("experiment=")]
-    cmd = [sys.executable, str(ROOT / "infer.py"), *case, *config, f"out_dir={folder}", "progress=false",
-           f"num_threads={threads}"]
+    cmd = [sys.executable, str(ROOT / "infer.py"), *infer_overrides(case, config), f"out_dir={folder}",
+           "progress=false", f"num_threads={threads}"]
     started = time.time()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
-    record: dict[str, Any] = {"command": " ".join(["python infer.py", *case, *config]),
+    record: dict[str, Any] = {"command": " ".join(["python infer.py", *infer_overrides(case, config)]),
                               "wall_s": round(time.time() - started, 1)}
     if proc.returncode != 0:
         record["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]

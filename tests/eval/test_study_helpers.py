@@ -3,6 +3,8 @@ values and the synthetic world's exact flow and poses."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -80,3 +82,32 @@ def test_length_panel_configs_keep_list_values_whole() -> None:
     assert parse_configs("default,flow=dis") == {"default": CONFIGS["default"], "flow=dis": CONFIGS["flow=dis"]}
     with pytest.raises(SystemExit, match="unknown 'nope'"):
         parse_configs("default,nope")
+
+
+def test_length_panel_cases_include_the_raw_and_hand_held_sequences(tmp_path: Path) -> None:
+    """``studies/length_panel.py``: KITTI raw 0005 and handheld_markers join the cases when the shared data folder
+    beside ``--kitti-root`` holds them (the hand-held one with its intrinsics file's values and
+    ``experiment=handheld``), and not when it does not; a configuration that names its own experiment replaces the
+    case's."""
+    import argparse
+
+    import numpy as np
+
+    from studies.length_panel import HANDHELD_MARKERS_INTRINSICS, cases, infer_overrides
+
+    args = argparse.Namespace(kitti_root=str(tmp_path / "kitti_odom"), synthetic_frames=10, video=None)
+    assert not {"kitti_raw_0005", "handheld_markers"} & set(cases(args))
+    (tmp_path / "kitti_raw_test" / "2011_09_26" / "2011_09_26_drive_0005_sync").mkdir(parents=True)
+    (tmp_path / "handheld_markers" / "images").mkdir(parents=True)
+    found = cases(args)
+    assert f"data.root={tmp_path / 'kitti_raw_test'}" in found["kitti_raw_0005"]
+    assert "experiment=handheld" in found["handheld_markers"]
+    hand = found["handheld_markers"]
+    assert infer_overrides(hand, ["flow=dis"]) == [*hand, "flow=dis"]
+    paper = infer_overrides(hand, ["experiment=paper"])
+    assert "experiment=handheld" not in paper and paper[-1] == "experiment=paper" and len(paper) == len(hand)
+    shared = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "handheld_markers" / "K.txt"
+    if shared.is_file():  # the intrinsics are the sequence's own
+        K = np.loadtxt(shared)
+        assert np.allclose([K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+                           [HANDHELD_MARKERS_INTRINSICS[k] for k in ("fx", "fy", "cx", "cy")], atol=1e-6)

@@ -168,6 +168,9 @@ def test_tracker_node_is_typed_and_unknown_settings_are_errors() -> None:
     assert (fast.flow.refine.mode, fast.tracker.scale_filter.refine_points) == ("pyramid", True)
     hand = typed(compose_infer("experiment=handheld"))  # a new direction confirmed by two frames is accepted
     assert (hand.tracker.gate.confirm_direction_frames, icfg.tracker.gate.confirm_direction_frames) == (2, None)
+    # and a turn that PnP's result confirms in the same frame, within the direction gate's own tolerance
+    assert (hand.tracker.gate.confirm_direction_by_pnp_deg, icfg.tracker.gate.confirm_direction_by_pnp_deg) == (
+        hand.tracker.gate.max_direction_change_deg, None)
     assert typed(compose_infer("seq=06")).tracker.scale.camera_height == 1.65  # seq=NN alone is KITTI odometry
     with pytest.raises((ConfigCompositionException, ConfigKeyError), match="selction_method"):
         compose_infer("tracker.correspondence.selction_method=best_n")
