@@ -440,7 +440,8 @@ class GateConfig:
             and PnP's result of the same frame, rejected too (by its turn or its length), points within this angle
             (degrees) of it, the two-view result is accepted: two trackers that share the flow but not the geometry
             (the epipolar constraint alone; the depth network's points) find the same new direction, so the motion
-            turned. null (the default): off; a car's trackers locked onto a truck filling the view agree too.
+            turned. null (the default): off; a car's trackers locked onto a truck filling the view agree too. Needs
+            ``tracker.mode=hybrid`` (the default; PnP does not run otherwise).
     """
 
     enabled: bool = True

@@ -104,7 +104,8 @@ class FrameState:
         gate_overruled: a gate's rejection was overruled (after ``gate.max_consecutive`` gated frames in a row).
         gated_direction: the direction (3,) of this frame's result that the direction gate rejected (None: none).
         rejected_directions: the directions (3,) of this frame's results that were rejected, by tracker: ``E``'s by
-            the direction gate, ``PnP``'s by the direction or the length gate.
+            the direction gate (a rejection that stands), ``PnP``'s by the direction or the length gate (not by its
+            support).
         direction_confirmed: the angle (degrees) between E's and PnP's rejected directions once PnP confirmed E's
             turn (``gate.confirm_direction_by_pnp_deg``); None: not confirmed.
     """
@@ -299,8 +300,10 @@ class VisualOdometry:
                 if cfg.mode == TrackerMode.hybrid:
                     T_cur_prev = self._pnp(st)
                 if T_cur_prev is None and self._trackers_agree_on_turn(st):
-                    T_cur_prev, _ = self._epipolar_pose(st)
+                    T_cur_prev, retry = self._epipolar_pose(st)
                     e_res = st.essential
+                    if T_cur_prev is None and retry is not None and retry != reason:
+                        diag.add_reason(retry)
         if T_cur_prev is None:
             T_prev_cur = self.last_motion.clone()
             diag.tracker = TrackerUsed.constant_motion
@@ -372,8 +375,9 @@ class VisualOdometry:
         """Whether the direction gate rejected the two-view result while PnP's result, itself rejected by a gate (its
         turn or its length, not its support), agrees with it within ``gate.confirm_direction_by_pnp_deg`` (two
         trackers, the epipolar geometry alone and the depth network's points, find the same new direction in the
-        same frame: the motion turned; off by default). Marks the frame so that the gate accepts the two-view
-        direction on the next try (its length is still gated)."""
+        same frame: the motion turned; off by default; PnP runs in ``tracker.mode=hybrid`` only). Marks the frame so
+        that the gate accepts the two-view direction on the next try if that try's direction agrees with PnP's too
+        (its length is still gated)."""
         limit = self.cfg.gate.confirm_direction_by_pnp_deg
         e_dir, pnp_dir = st.rejected_directions.get("E"), st.rejected_directions.get("PnP")
         if limit is None or e_dir is None or pnp_dir is None or st.direction_confirmed is not None:
@@ -526,13 +530,18 @@ class VisualOdometry:
         (:meth:`_trackers_agree_on_turn`)."""
         if reason is None:
             return None
-        if st.direction_confirmed is not None and kind == "E":
-            apart = st.direction_confirmed
-            st.diagnostics.add_reason(f"{reason}: accepted, PnP's result turns with it ({apart:.0f} deg apart)")
-            return None
-        st.rejected_directions[kind] = direction
+        limit = self.cfg.gate.confirm_direction_by_pnp_deg
+        pnp_direction = st.rejected_directions.get("PnP")
+        if st.direction_confirmed is not None and kind == "E" and pnp_direction is not None:
+            # the retry's direction (its RANSAC draws anew) must itself agree with PnP's
+            apart = angle_deg(direction, pnp_direction)
+            if limit is not None and apart <= limit:
+                st.diagnostics.add_reason(f"{reason}: accepted, PnP's result points the same way ({apart:.0f} deg "
+                                          "apart)")
+                return None
         n = self.cfg.gate.confirm_direction_frames
         if not n:
+            st.rejected_directions[kind] = direction
             return reason
         recent = self.fusion.gated_directions  # at most n - 1, kept by the frame's end
         if len(recent) == int(n) - 1 and all(angle_deg(direction, d) <= self.cfg.gate.max_direction_change_deg
@@ -540,6 +549,7 @@ class VisualOdometry:
             st.diagnostics.add_reason(f"{reason}: accepted, {int(n)} frames in a row agree on the new direction")
             return None
         st.gated_direction = direction
+        st.rejected_directions[kind] = direction  # the rejection stands
         return reason
 
     def _gate(self, st: FrameState, reason: str | None) -> str | None:
@@ -593,7 +603,9 @@ class VisualOdometry:
                                     self.fusion.motion.direction_deg)))
             if reason is not None:
                 diag.add_reason(reason)
-                if support is None:  # a well-supported direction, rejected for its length or its turn
+                # a well-supported direction, rejected for its turn or its length (the length gate rejects no stop:
+                # its image shows the translation's parallax)
+                if support is None:
                     st.rejected_directions.setdefault("PnP", direction)
                 return None
         diag.tracker, diag.scale = TrackerUsed.pnp, length

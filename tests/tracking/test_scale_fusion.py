@@ -386,7 +386,7 @@ def test_a_turn_that_pnp_confirms_in_the_same_frame_is_accepted() -> None:
         cfg = TrackerConfig(scale=ScaleConfig(camera_height=None), gate=Gate(confirm_direction_by_pnp_deg=limit))
         res = VisualOdometry(cfg).run(ff, fb, d[:-1], K, depths_next=d[1:])
         trackers[limit] = [r.diagnostics.tracker for r in res]
-        confirmed[limit] = [k for k, r in enumerate(res) if "PnP's result turns with it" in
+        confirmed[limit] = [k for k, r in enumerate(res) if "PnP's result points the same way" in
                             (r.diagnostics.fallback_reason or "")]
         errors[limit] = []
         for k, r in enumerate(res):
