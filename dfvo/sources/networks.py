@@ -232,10 +232,10 @@ class NetworkDepth:
         if depth_scale <= 0:
             raise ValueError(f"depth.depth_scale={depth_scale}; expected a positive factor to metres")
         self.checkpoint = Path(checkpoint)
-        # read once: the file sizes the network (its channel width) and fills it (a missing file: load_weights says so)
-        contents = (read_state_dict(self.checkpoint, "depth network DepthNet", "depth.checkpoint")
-                    if self.checkpoint.is_file() else None)
-        width = 1.0 if contents is None else network_width(contents[1], "depth.checkpoint", contents[0])
+        # read once: the file sizes the network (its channel width) and fills it (a missing or unreadable file: one
+        # clear error from read_state_dict, as load_weights would give)
+        contents = read_state_dict(self.checkpoint, "depth network DepthNet", "depth.checkpoint")
+        width = network_width(contents[1], "depth.checkpoint", contents[0])
         self.model = DepthNet(min_depth, max_depth, width=width).to(device).eval()
         meta = load_weights(self.model, self.checkpoint, "depth network DepthNet", "depth.checkpoint",
                             contents=contents)

@@ -106,8 +106,8 @@ class FrameState:
         rejected_directions: the directions (3,) of this frame's results that were rejected, by tracker: ``E``'s by
             the direction gate (a rejection that stands), ``PnP``'s by the direction or the length gate (not by its
             support).
-        direction_confirmed: the angle (degrees) between E's and PnP's rejected directions once PnP confirmed E's
-            turn (``gate.confirm_direction_by_pnp_deg``); None: not confirmed.
+        direction_confirmed: PnP's result confirmed E's rejected turn (``gate.confirm_direction_by_pnp_deg``): the
+            retry's E direction is accepted if it agrees with PnP's too.
     """
 
     pts_prev: torch.Tensor
@@ -130,7 +130,7 @@ class FrameState:
     gate_overruled: bool = False
     gated_direction: torch.Tensor | None = None
     rejected_directions: dict[str, torch.Tensor] = field(default_factory=dict)
-    direction_confirmed: float | None = None
+    direction_confirmed: bool = False
 
     @property
     def rows(self) -> torch.Tensor:
@@ -380,13 +380,10 @@ class VisualOdometry:
         (its length is still gated)."""
         limit = self.cfg.gate.confirm_direction_by_pnp_deg
         e_dir, pnp_dir = st.rejected_directions.get("E"), st.rejected_directions.get("PnP")
-        if limit is None or e_dir is None or pnp_dir is None or st.direction_confirmed is not None:
+        if limit is None or e_dir is None or pnp_dir is None or st.direction_confirmed:
             return False
-        angle = angle_deg(e_dir, pnp_dir)
-        if angle > limit:
-            return False
-        st.direction_confirmed = angle
-        return True
+        st.direction_confirmed = angle_deg(e_dir, pnp_dir) <= limit
+        return st.direction_confirmed
 
     def _essential_pose(self, st: FrameState, refine: bool = True) -> tuple[torch.Tensor | None, str | None]:
         """The E-tracker's pose ``T_cur_prev`` (4,4) with its scale (iterative scale, fusion, gates), or None and
@@ -530,12 +527,10 @@ class VisualOdometry:
         (:meth:`_trackers_agree_on_turn`)."""
         if reason is None:
             return None
-        limit = self.cfg.gate.confirm_direction_by_pnp_deg
-        pnp_direction = st.rejected_directions.get("PnP")
-        if st.direction_confirmed is not None and kind == "E" and pnp_direction is not None:
+        if st.direction_confirmed and kind == "E":
             # the retry's direction (its RANSAC draws anew) must itself agree with PnP's
-            apart = angle_deg(direction, pnp_direction)
-            if limit is not None and apart <= limit:
+            apart = angle_deg(direction, st.rejected_directions["PnP"])
+            if apart <= self.cfg.gate.confirm_direction_by_pnp_deg:
                 st.diagnostics.add_reason(f"{reason}: accepted, PnP's result points the same way ({apart:.0f} deg "
                                           "apart)")
                 return None
