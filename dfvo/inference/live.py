@@ -31,7 +31,7 @@ from dfvo.inference.assembly import build_observers
 from dfvo.inference.config import InferConfig
 from dfvo.inference.outputs import FramesCsv
 from dfvo.inference.recording import RunInterrupted, SignalsToInterrupt, write_frame
-from dfvo.inference.report import camera_height_report, finish_run
+from dfvo.inference.report import camera_height_report, finish_run, motion_report
 from dfvo.io.trajectory import TrajectoryWriter
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 
@@ -124,7 +124,8 @@ def run_live(cfg: InferConfig, data: Any, out: Path, device: str) -> dict[str, A
     summary = finish_run(seq, np.stack(trajectory), diagnostics, odo.timer, wall, out, align=cfg.align,
                          pose_file=pose_file, warn_fallback_rate=cfg.warn_fallback_rate,
                          partial=None if stopped is None else signal.Signals(stopped.signum).name,
-                         extra={**odo.sources.extra, "stream": stats, "camera_height": camera_height_report(odo.vo)})
+                         extra={**odo.sources.extra, "stream": stats, "camera_height": camera_height_report(odo.vo),
+                                "motion": motion_report(odo.vo)})
     if stopped is not None:
         raise stopped
     return summary

@@ -35,7 +35,7 @@ from dfvo.inference.outputs import (
     writing,
 )
 from dfvo.inference.recording import RunInterrupted, SignalsToInterrupt, stamp, write_frame
-from dfvo.inference.report import camera_height_report, finish_run
+from dfvo.inference.report import camera_height_report, finish_run, motion_report
 from dfvo.inference.timing import StageTimer
 from dfvo.io.json_io import write_json
 from dfvo.io.trajectory import TrajectoryWriter
@@ -159,7 +159,7 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
         extra = {**extra, "error": str(failed)}
         log.error("stopped by an error after %d of %d poses (%s); writing partial results", len(trajectory),
                   seq.length, failed)
-    extra = {**extra, "camera_height": camera_height_report(vo), "overlap": overlap.value,
+    extra = {**extra, "camera_height": camera_height_report(vo), "motion": motion_report(vo), "overlap": overlap.value,
              "torch_threads": torch.get_num_threads()}
     if timer.refine_cut is not None:
         cuts = timer.refine_cut["network_thread_units"]

@@ -69,6 +69,14 @@ def camera_height_report(vo: Any) -> dict[str, Any] | None:
     return report
 
 
+def motion_report(vo: Any) -> dict[str, Any]:
+    """``summary.json``'s ``motion``: the motion model the tracker ran (``tracker.motion``) and, with ``auto``, how it
+    judged it (:meth:`dfvo.tracking.motion_model.MotionJudge.report`); logged once."""
+    report = vo.motion.report()
+    log.info("motion: %s (%s)", report["motion"], report["reason"])
+    return report
+
+
 def finish_run(seq: FrameSequence, pred: np.ndarray, diagnostics: list[FrameDiagnostics], timer: StageTimer,
                wall: float, out: Path, *, align: str, pose_file: Path, warn_fallback_rate: float,
                partial: str | None = None, extra: dict[str, Any] | None = None) -> dict[str, Any]:

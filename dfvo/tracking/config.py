@@ -27,7 +27,7 @@ from dfvo.validation import check, choice
 __all__ = ["TrackerMode", "SelectionMethod", "ModelSelectionMethod", "ScaleMethod", "RoadPoints", "SelectionConfig",
            "EssentialConfig", "ModelSelectionConfig", "ScaleConfig", "RoadPlaneConfig", "CameraHeightConfig",
            "RoadAlignmentConfig", "ScaleFilterConfig", "GateConfig", "PnPConfig", "CovarianceConfig", "WindowConfig",
-           "TrackerConfig"]
+           "MotionModel", "HandheldConfig", "MotionAutoConfig", "TrackerConfig"]
 
 
 class TrackerMode(StrEnum):
@@ -53,6 +53,17 @@ class PlanarMotion(StrEnum):
 
     pnp = "pnp"
     homography = "homography"
+
+
+class MotionModel(StrEnum):
+    """How the camera moves (``tracker.motion``; :mod:`dfvo.tracking.motion_model`): ``car`` (a vehicle's inertia:
+    the gate and model-selection settings as they are), ``handheld`` (a hand or a small robot turns its motion for
+    good from one frame to the next and films planar scenes: :class:`HandheldConfig` replaces those settings) or
+    ``auto`` (``car`` until the first frames' motion says which: :class:`MotionAutoConfig`)."""
+
+    car = "car"
+    handheld = "handheld"
+    auto = "auto"
 
 
 class RoadPoints(StrEnum):
@@ -480,6 +491,65 @@ class GateConfig:
 
 
 @dataclass
+class HandheldConfig:
+    """What a hand-held camera's motion changes (``tracker.handheld``): these values replace the fields of the same
+    name of ``tracker.gate`` and ``tracker.model_selection`` (a car's) whenever the motion is hand-held
+    (``tracker.motion=handheld``, or ``auto`` judged so).
+
+    Attributes:
+        confirm_direction_frames: :attr:`GateConfig.confirm_direction_frames` for a hand (null: off).
+        confirm_direction_by_pnp_deg: :attr:`GateConfig.confirm_direction_by_pnp_deg` for a hand (null: off).
+        planar: :attr:`ModelSelectionConfig.planar` for a hand (the homography's own decomposition on a desk or a
+            wall, where PnP would trust the driving-trained depth); with ``model_selection.method=flow`` (no
+            homography is fitted) PnP tracks planar pairs whatever this says (``summary.json``'s ``motion.settings``
+            gives what ran).
+    With ``auto`` or ``handheld`` a value set in ``tracker.gate`` / ``tracker.model_selection`` for these three
+    fields is a car's: after a hand-held verdict this section's apply (set ``tracker.motion=car`` to keep them).
+    Measured in docs/robots.md (the synthetic hand-held world and ``handheld_markers``).
+    """
+
+    confirm_direction_frames: int | None = 2
+    confirm_direction_by_pnp_deg: float | None = 45.0
+    planar: PlanarMotion = PlanarMotion.homography
+
+    def __post_init__(self) -> None:
+        self.planar = choice(PlanarMotion, self.planar, "tracker.handheld.planar")
+        check(self.confirm_direction_frames is None or int(self.confirm_direction_frames) >= 2,
+              f"tracker.handheld.confirm_direction_frames={self.confirm_direction_frames}; expected null (off) or >= 2")
+        check(self.confirm_direction_by_pnp_deg is None or 0.0 < float(self.confirm_direction_by_pnp_deg) < 180.0,
+              f"tracker.handheld.confirm_direction_by_pnp_deg={self.confirm_direction_by_pnp_deg}; expected null "
+              "(off) or an angle in (0, 180) degrees")
+
+
+@dataclass
+class MotionAutoConfig:
+    """How ``tracker.motion=auto`` judges the motion (``tracker.motion_auto``, :class:`dfvo.tracking.motion_model.
+    MotionJudge`): a car moves along its optical axis, a hand in every direction.
+
+    Attributes:
+        frames: the judgement is made once this many frames have measured their translation's direction (the
+            two-view or PnP result, accepted by the gates or not), with at least ``min_parallax_px`` of image
+            motion beyond the camera's rotation (a stop or a pure turn shows no direction).
+        off_axis_deg: hand-held when the median angle between those translations and the optical axis (either
+            way: a car may reverse) exceeds this. Measured on ground truth (docs/robots.md): the first 10 steps'
+            median is 0.2-8.7 deg on every road (KITTI 06, 07, raw 0005, the synthetic worlds; at most 13 deg on
+            one step), 33-70 deg on the hand-held cases.
+        min_parallax_px: see ``frames``. Below ~0.3 px the measured directions are noise (up to 75 deg off on a
+            synthetic highway whose flow fails); a hand-held camera often moves less than 1 px a frame
+            (``handheld_markers``: judged at frame 13 with 0.5, 28 with 1.0).
+    """
+
+    frames: int = 5
+    off_axis_deg: float = 25.0
+    min_parallax_px: float = 0.5
+
+    def __post_init__(self) -> None:
+        check(int(self.frames) >= 1 and 0.0 < float(self.off_axis_deg) < 90.0 and float(self.min_parallax_px) >= 0,
+              f"tracker.motion_auto: frames={self.frames} (expected >= 1), off_axis_deg={self.off_axis_deg} (expected "
+              f"(0, 90)), min_parallax_px={self.min_parallax_px} (expected >= 0)")
+
+
+@dataclass
 class CovarianceConfig:
     """Per-frame covariance of the relative step (``tracker.covariance``; :mod:`dfvo.tracking.covariance`).
 
@@ -571,6 +641,8 @@ class TrackerConfig:
         correspondence, essential, model_selection, scale, road_plane, road_alignment, camera_height, scale_filter,
             gate, pnp: the stages' sections. covariance: the per-frame covariance of the step. window: the
             sliding-window refinement of each step (off by default).
+        motion: see :class:`MotionModel`; handheld: what a hand-held motion changes; motion_auto: how ``auto``
+            judges it.
     """
 
     mode: TrackerMode = TrackerMode.hybrid
@@ -587,6 +659,10 @@ class TrackerConfig:
     pnp: PnPConfig = field(default_factory=PnPConfig)
     covariance: CovarianceConfig = field(default_factory=CovarianceConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
+    motion: MotionModel = MotionModel.auto
+    handheld: HandheldConfig = field(default_factory=HandheldConfig)
+    motion_auto: MotionAutoConfig = field(default_factory=MotionAutoConfig)
 
     def __post_init__(self) -> None:
         self.mode = choice(TrackerMode, self.mode, "tracker.mode")
+        self.motion = choice(MotionModel, self.motion, "tracker.motion")

@@ -17,13 +17,14 @@ import torch
 from dfvo.geometry.gric import gric_essential, gric_homography
 from dfvo.geometry.homography import HomographyDecomposition, decompose_homography
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, find_homography_ransac
-from dfvo.tracking.config import ModelSelectionMethod, PlanarMotion, TrackerConfig
+from dfvo.tracking.config import ModelSelectionMethod, TrackerConfig
 from dfvo.tracking.model_selection import (
     homography_to_essential_residual,
     prefer_pnp_flow,
     prefer_pnp_gric,
     rotation_compensated_parallax,
 )
+from dfvo.tracking.motion_model import may_use_homography
 from dfvo.tracking.scale import sample_depth, simple_scale, triangulated_depths
 
 __all__ = ["ETrackerResult", "track_essential", "essential_scale"]
@@ -40,7 +41,8 @@ class ETrackerResult:
         parallax_px: (B,) float64 median image motion of E's inliers beyond the rotation (pixels; NaN without
             inliers): what the translation shows in the image.
         valid: (B,) bool, E usable. reasons: why a frame's E is not usable (None when valid).
-        homography: the decompositions of the GRIC homography (``model_selection.planar=homography``; else None),
+        homography: the decompositions of the GRIC homography (when a motion the run may use has ``planar=
+            homography``: :func:`dfvo.tracking.motion_model.may_use_homography`; else None),
             homography_inliers: (B,N) its RANSAC inliers (None likewise).
     """
 
@@ -71,12 +73,15 @@ class ETrackerResult:
 
 
 def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
-                    cfg: TrackerConfig, generators: list[torch.Generator] | None) -> ETrackerResult:
+                    cfg: TrackerConfig, generators: list[torch.Generator] | None,
+                    homography: bool | None = None) -> ETrackerResult:
     """Essential-matrix tracking with validity rules: more than ``min_correspondences`` rows, a RANSAC model,
     E preferred by model selection (GRIC_E <= GRIC_H, or enough flow; with ``model_selection.min_parallax_px``
     also any pair whose inliers move at least that far beyond the camera's rotation, see
     :func:`dfvo.tracking.model_selection.rotation_compensated_parallax`), and at least ``min_cheirality_fraction``
-    of the rows passing cheirality."""
+    of the rows passing cheirality. ``homography``: decompose the GRIC homography of each pair (for the planar path);
+    None: whenever a motion the configuration may run uses it (:func:`dfvo.tracking.motion_model.
+    may_use_homography`; the odometry loop passes its judged motion's need)."""
     B = pts_i.shape[0]
     ess, sel = cfg.essential, cfg.model_selection
     n = mask.sum(-1)
@@ -106,7 +111,9 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
                                  >= sel.min_homography_residual_ratio)
         pnp_wanted = pnp_wanted & ~visible
     decomposition, h_inliers = None, None
-    if sel.method == ModelSelectionMethod.gric and sel.planar == PlanarMotion.homography:
+    if homography is None:
+        homography = may_use_homography(cfg)
+    if sel.method == ModelSelectionMethod.gric and homography:
         h_inliers = mask & H.inliers
         decomposition = decompose_homography(H.model, K, pts_i, pts_j, h_inliers)
     reasons: list[str | None] = []

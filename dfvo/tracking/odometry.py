@@ -46,11 +46,12 @@ from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, n
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
 from dfvo.matching.selection import select_correspondences
-from dfvo.tracking.config import ScaleMethod, TrackerConfig, TrackerMode
+from dfvo.tracking.config import PlanarMotion, ScaleMethod, TrackerConfig, TrackerMode
 from dfvo.tracking.covariance import length_log_variance, step_covariance
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
 from dfvo.tracking.e_tracker import ETrackerResult, essential_scale, track_essential
 from dfvo.tracking.gates import angle_deg, check_direction, check_length, check_support, image_parallax_px
+from dfvo.tracking.motion_model import MotionJudge
 from dfvo.tracking.pnp_tracker import track_pnp
 from dfvo.tracking.scale import has_depth, iterative_scale, sample_depth
 from dfvo.tracking.scale_filter import ScaleEstimate
@@ -108,6 +109,9 @@ class FrameState:
             support).
         direction_confirmed: PnP's result confirmed E's rejected turn (``gate.confirm_direction_by_pnp_deg``): the
             retry's E direction is accepted if it agrees with PnP's too.
+        measured_direction: the first translation direction (3,) a tracker measured on this frame, accepted or not
+            (what ``tracker.motion=auto`` judges from); measured_parallax: the image's median motion (pixels) beyond
+            that result's rotation where no E-tracker ran (``tracker.mode=pnp``; else E's parallax is used).
     """
 
     pts_prev: torch.Tensor
@@ -131,6 +135,8 @@ class FrameState:
     gated_direction: torch.Tensor | None = None
     rejected_directions: dict[str, torch.Tensor] = field(default_factory=dict)
     direction_confirmed: bool = False
+    measured_direction: torch.Tensor | None = None
+    measured_parallax: float | None = None
 
     @property
     def rows(self) -> torch.Tensor:
@@ -176,6 +182,7 @@ class VisualOdometry:
                 or self.fusion.point_refinement is not self.point_refinement):
             self.fusion = ScaleFusion(self.cfg, self.point_refinement)
         self.fusion.reset()
+        self.motion = MotionJudge(self.cfg)  # the motion model in force (tracker.motion; auto: judged)
         w = self.cfg.window
         self.window = (WindowRefiner(w, self.cfg.covariance.inflation, self.cfg.scale.max_depth,
                                      self.cfg.scale.depth_crop_top) if w.enabled else None)
@@ -252,7 +259,7 @@ class VisualOdometry:
         t1 = time.perf_counter()
         e_res, scale, scale_ok = None, None, None
         if cfg.mode != TrackerMode.pnp:
-            e_res = track_essential(pi, pj, mask, Kd, cfg, gens)
+            e_res = track_essential(pi, pj, mask, Kd, cfg, gens, homography=self.motion.may_use_homography)
             scale, scale_ok = essential_scale(e_res.R, e_res.t, pi, pj, mask, depth, Kd, cfg, gens, depth_next)
         t2 = time.perf_counter()
         results = []
@@ -328,7 +335,7 @@ class VisualOdometry:
         # the directions the direction gate rejected on consecutive constant-motion frames: the last
         # confirm_direction_frames - 1 of them (a direction is only recorded when that setting is on)
         self.fusion.gated_directions = (
-            [*self.fusion.gated_directions, st.gated_direction][1 - int(self.cfg.gate.confirm_direction_frames):]
+            [*self.fusion.gated_directions, st.gated_direction][1 - int(self.motion.settings.confirm_direction_frames):]
             if gated_out and st.gated_direction is not None else [])
         if st.gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself
             self.fusion.forget_motion()
@@ -339,6 +346,8 @@ class VisualOdometry:
                               st.depth, cfg, log_var, st.depth_next if st.pnp_backwards else None)
         if self.window is not None:  # the emitted step only: the tracker's state above keeps its own
             T_prev_cur = self._window_step(st, T_prev_cur, T_cur_prev is not None, cov, matches)
+        self.motion.observe(diag.frame, st.measured_direction,  # the next frames' motion (auto)
+                            diag.parallax_px if diag.parallax_px is not None else st.measured_parallax)
         self.T_w = self.T_w @ T_prev_cur
         return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches, cov)
 
@@ -364,7 +373,8 @@ class VisualOdometry:
         reason = e_res.reasons[0]
         if reason is None:
             return self._essential_pose(st)
-        if e_res.homography is not None and reason.startswith("model selection prefers PnP (GRIC"):
+        if (e_res.homography is not None and self.motion.settings.planar == PlanarMotion.homography
+                and reason.startswith("model selection prefers PnP (GRIC")):
             T, planar = self._homography_pose(st)
             if planar is not None:
                 diag.add_reason(planar)
@@ -378,7 +388,7 @@ class VisualOdometry:
         same frame: the motion turned; off by default; PnP runs in ``tracker.mode=hybrid`` only). Marks the frame so
         that the gate accepts the two-view direction on the next try if that try's direction agrees with PnP's too
         (its length is still gated)."""
-        limit = self.cfg.gate.confirm_direction_by_pnp_deg
+        limit = self.motion.settings.confirm_direction_by_pnp_deg
         e_dir, pnp_dir = st.rejected_directions.get("E"), st.rejected_directions.get("PnP")
         if limit is None or e_dir is None or pnp_dir is None or st.direction_confirmed:
             return False
@@ -423,6 +433,8 @@ class VisualOdometry:
                 R, t, s, ok = R_it, t_it, s_it, True
         rows = st.rows
         direction = -(R[0].transpose(0, 1) @ t[0])  # T_prev_cur's translation direction (E is never a stop: judged)
+        if st.measured_direction is None:
+            st.measured_direction = direction
         support = self._gate(st, check_support("E", diag.num_inliers, int(rows.sum()), cfg.gate)
                              or self._new_direction(st, "E", direction, check_direction(
                                  "E", direction, self.fusion.expected_direction, 1.0, cfg.gate,
@@ -530,15 +542,15 @@ class VisualOdometry:
         if st.direction_confirmed and kind == "E":
             # the retry's direction (its RANSAC draws anew) must itself agree with PnP's
             apart = angle_deg(direction, st.rejected_directions["PnP"])
-            if apart <= self.cfg.gate.confirm_direction_by_pnp_deg:
+            if apart <= self.motion.settings.confirm_direction_by_pnp_deg:
                 st.diagnostics.add_reason(f"{reason}: accepted, PnP's result points the same way ({apart:.0f} deg "
                                           "apart)")
                 return None
-        n = self.cfg.gate.confirm_direction_frames
+        n = self.motion.settings.confirm_direction_frames
         if not n:
             st.rejected_directions[kind] = direction
             return reason
-        recent = self.fusion.gated_directions  # at most n - 1, kept by the frame's end
+        recent = self.fusion.gated_directions[1 - int(n):]  # the last n - 1 (a car's n may have kept more)
         if len(recent) == int(n) - 1 and all(angle_deg(direction, d) <= self.cfg.gate.max_direction_change_deg
                                              for d in recent):
             st.diagnostics.add_reason(f"{reason}: accepted, {int(n)} frames in a row agree on the new direction")
@@ -584,10 +596,14 @@ class VisualOdometry:
                 st.estimate = est
                 length = est.scale
                 T = pose_from_rt(R_p, length * t_p)
+        direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])
+        if st.measured_direction is None:
+            st.measured_direction = direction
+            if st.essential is None:  # tracker.mode=pnp: no E parallax; the image's motion beyond PnP's rotation
+                st.measured_parallax = image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K, quantile=0.5)
         if cfg.gate.enabled:
             lifted = (st.depth_next, pj) if st.pnp_backwards else (depth, pi)
             _, usable = sample_depth(*lifted, cfg.scale.max_depth, cfg.scale.depth_crop_top)
-            direction = -(T[0, :3, :3].transpose(0, 1) @ T[0, :3, 3])
             support = check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
             reason = self._gate(st, support
                                 or check_length("PnP", length, self.fusion.expected_length, cfg.gate,

@@ -166,11 +166,17 @@ def test_tracker_node_is_typed_and_unknown_settings_are_errors() -> None:
                 paper.flow.refine.iterations) == (None, False, False, 0)
     fast = typed(compose_infer("experiment=fast_motion"))  # the sparse refinement, with the temporal points refined
     assert (fast.flow.refine.mode, fast.tracker.scale_filter.refine_points) == ("pyramid", True)
-    hand = typed(compose_infer("experiment=handheld"))  # a new direction confirmed by two frames is accepted
-    assert (hand.tracker.gate.confirm_direction_frames, icfg.tracker.gate.confirm_direction_frames) == (2, None)
-    # and a turn that PnP's result confirms in the same frame, within the direction gate's own tolerance
-    assert (hand.tracker.gate.confirm_direction_by_pnp_deg, icfg.tracker.gate.confirm_direction_by_pnp_deg) == (
-        hand.tracker.gate.max_direction_change_deg, None)
+    # a hand's motion from the first frame; the default judges it (auto), the paper's is a car's throughout
+    hand = typed(compose_infer("experiment=handheld"))
+    assert (hand.tracker.motion, icfg.tracker.motion, paper.tracker.motion) == ("handheld", "auto", "car")
+    # a hand's settings: a new direction confirmed by two frames, or by PnP's result in the same frame within the
+    # direction gate's own tolerance, and planar pairs by the homography; a car's keep all three off
+    h = icfg.tracker.handheld
+    assert (h.confirm_direction_frames, h.confirm_direction_by_pnp_deg, h.planar) == (
+        2, icfg.tracker.gate.max_direction_change_deg, "homography")
+    g = icfg.tracker.gate
+    assert (g.confirm_direction_frames, g.confirm_direction_by_pnp_deg, icfg.tracker.model_selection.planar) == (
+        None, None, "pnp")
     assert typed(compose_infer("seq=06")).tracker.scale.camera_height == 1.65  # seq=NN alone is KITTI odometry
     with pytest.raises((ConfigCompositionException, ConfigKeyError), match="selction_method"):
         compose_infer("tracker.correspondence.selction_method=best_n")

@@ -31,3 +31,19 @@ def straight_pairs() -> Callable[[int], StraightPairs]:
     rendered with exact flow and depth: ``(world, flow_fwd (n-1,2,H,W), flow_bwd, depth (n-1,1,H,W), T_prev_cur
     (n-1,4,4))``, rendered once per ``n`` (the E-tracker takes every pair)."""
     return _straight_pairs
+
+
+@cache
+def _handheld_exact() -> tuple[torch.Tensor, ...]:
+    w = SyntheticWorld(seed=1000, num_frames=16, scenario="handheld", height=96, width=320)
+    frames = [w.render(i, right=False) for i in range(16)]
+    return (torch.stack([f["flow_fwd"] for f in frames[:-1]]), torch.stack([f["flow_bwd"] for f in frames[:-1]]),
+            torch.stack([f["depth"] for f in frames]) * 10.0, w.intrinsics(), w.poses())
+
+
+@pytest.fixture(scope="session")
+def handheld_exact() -> tuple[torch.Tensor, ...]:
+    """The synthetic hand-held world (seed 1000, 16 frames, 96x320) with exact flows and its depth 10x too far (steps
+    of 10-40 cm: the direction gate applies): forward and backward flows (15,2,H,W), depths (16,1,H,W), K (3,3),
+    poses T_w_c (16,4,4); rendered once."""
+    return _handheld_exact()

@@ -202,7 +202,7 @@ def test_pnp_length_goes_through_the_filter():
     ratios = {}
     for fuse in (False, True):
         cfg = TrackerConfig(scale=ScaleConfig(depth_views=1, fuse_pnp=fuse),
-                            camera_height=CameraHeightConfig(estimate=False))
+                            camera_height=CameraHeightConfig(estimate=False), motion="car")  # PnP on the plane
         res = VisualOdometry(cfg).run(ff, fb, bad, w.intrinsics(), batch_size=3)
         assert all(r.diagnostics.tracker == "PnP" for r in res)
         ratios[fuse] = torch.stack([r.T_prev_cur[:3, 3].norm() for r in res]) / true

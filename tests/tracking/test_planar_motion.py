@@ -31,7 +31,7 @@ def planar_world() -> tuple:
 def _run(planar: str, world: tuple) -> tuple[list, torch.Tensor, torch.Tensor]:
     ff, fb, depth, K, true = world
     cfg = TrackerConfig(scale=ScaleConfig(depth_views=1), camera_height=CameraHeightConfig(estimate=False),
-                        model_selection=ModelSelectionConfig(planar=planar))
+                        model_selection=ModelSelectionConfig(planar=planar), motion="car")  # the setting as given
     res = VisualOdometry(cfg).run(ff, fb, depth, K, batch_size=4)
     steps = torch.stack([r.T_prev_cur for r in res])
     direction = torch.rad2deg(torch.arccos((torch.nn.functional.normalize(steps[:, :3, 3], dim=-1)
@@ -66,7 +66,7 @@ def test_planar_homography_streams_as_it_runs(planar_world: tuple) -> None:
     batch sizes) give the same poses."""
     ff, fb, depth, K, _ = planar_world
     cfg = TrackerConfig(scale=ScaleConfig(depth_views=1), camera_height=CameraHeightConfig(estimate=False),
-                        model_selection=ModelSelectionConfig(planar="homography"))
+                        model_selection=ModelSelectionConfig(planar="homography"), motion="car")
     runs = [torch.stack([r.T_w_cur for r in VisualOdometry(cfg).run(ff, fb, depth, K, batch_size=b)]) for b in (4, 3)]
     vo = VisualOdometry(cfg)
     streamed = torch.stack([vo.step(ff[k:k + 1], fb[k:k + 1], depth[k:k + 1], K[None]).T_w_cur for k in range(N)])

@@ -1,7 +1,6 @@
 """Scale beyond the CNN: the camera-height prior, the three-frame relative scale, the filter, the plausibility gates,
 on exact synthetic cases."""
 
-import functools
 import math
 
 import pytest
@@ -338,21 +337,12 @@ def test_dataset_camera_height_reaches_the_tracker():
         _infer_config("data=kitti_odom", "data.camera_height=-1")
 
 
-@functools.lru_cache(maxsize=1)
-def _handheld_exact() -> tuple[torch.Tensor, ...]:
-    """The synthetic hand-held world (seed 1000, 16 frames, 96x320) with exact flows and its depth 10x too far (steps
-    of 10-40 cm: the direction gate applies): forward and backward flows (15,2,H,W), depths (16,1,H,W), K, poses."""
-    w = SyntheticWorld(seed=1000, num_frames=16, scenario="handheld", height=96, width=320)
-    frames = [w.render(i, right=False) for i in range(16)]
-    return (torch.stack([f["flow_fwd"] for f in frames[:-1]]), torch.stack([f["flow_bwd"] for f in frames[:-1]]),
-            torch.stack([f["depth"] for f in frames]) * 10.0, w.intrinsics(), w.poses())
-
-
-def _run_handheld(gate: GateConfig) -> tuple[list, list[float]]:
-    """The tracker with these gate settings on :func:`_handheld_exact`: its results and the direction error (degrees)
-    of every E step against the true step."""
-    ff, fb, d, K, poses = _handheld_exact()
-    res = VisualOdometry(TrackerConfig(scale=ScaleConfig(camera_height=None), gate=gate)).run(
+def _run_handheld(gate: GateConfig, world: tuple[torch.Tensor, ...]) -> tuple[list, list[float]]:
+    """The tracker with these gate settings (a car's motion model: the settings as given throughout) on
+    ``world`` (the ``handheld_exact`` fixture): its results and the direction error (degrees) of every E step against
+    the true step."""
+    ff, fb, d, K, poses = world
+    res = VisualOdometry(TrackerConfig(scale=ScaleConfig(camera_height=None), gate=gate, motion="car")).run(
         ff, fb, d[:-1], K, depths_next=d[1:])
     errors = []
     for k, r in enumerate(res):
@@ -363,28 +353,28 @@ def _run_handheld(gate: GateConfig) -> tuple[list, list[float]]:
     return res, errors
 
 
-def test_a_direction_confirmed_by_consecutive_frames_is_accepted() -> None:
+def test_a_direction_confirmed_by_consecutive_frames_is_accepted(handheld_exact: tuple[torch.Tensor, ...]) -> None:
     """The synthetic hand-held world with exact flow and its depth 10x too far (steps of 10-40 cm: the direction
     gate applies): where the hand turns for good, the gate keeps rejecting the true new direction frame after frame
     (constant motion); with ``confirm_direction_frames=2`` the second frame that agrees is accepted, and every
     accepted direction is the true one (exact inputs)."""
     trackers, errors = {}, {}
     for confirm in (None, 2):
-        res, errors[confirm] = _run_handheld(GateConfig(confirm_direction_frames=confirm))
+        res, errors[confirm] = _run_handheld(GateConfig(confirm_direction_frames=confirm), handheld_exact)
         trackers[confirm] = [r.diagnostics.tracker for r in res]
     cm = {c: sum(t == "constant_motion" for t in v) for c, v in trackers.items()}
     assert cm[None] >= 4 and cm[2] <= cm[None] - 3, cm
     assert max(errors[2]) < 1.0, errors[2]  # what the confirmation accepted is the true motion
 
 
-def test_a_turn_that_pnp_confirms_in_the_same_frame_is_accepted() -> None:
+def test_a_turn_that_pnp_confirms_in_the_same_frame_is_accepted(handheld_exact: tuple[torch.Tensor, ...]) -> None:
     """The same world (exact flow, depth 10x too far): where the hand turns, E and PnP both find the new direction
     and the direction gate rejects both (constant motion); with ``confirm_direction_by_pnp_deg=30`` E's result is
     accepted in that very frame (PnP, on depth that is wrong in scale but not in shape, turns with it), and every
     accepted direction is the true one (exact inputs)."""
     trackers, errors, confirmed = {}, {}, {}
     for limit in (None, 30.0):
-        res, errors[limit] = _run_handheld(GateConfig(confirm_direction_by_pnp_deg=limit))
+        res, errors[limit] = _run_handheld(GateConfig(confirm_direction_by_pnp_deg=limit), handheld_exact)
         trackers[limit] = [r.diagnostics.tracker for r in res]
         confirmed[limit] = [k for k, r in enumerate(res) if "PnP's result points the same way" in
                             (r.diagnostics.fallback_reason or "")]
