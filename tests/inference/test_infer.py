@@ -96,6 +96,10 @@ def test_oracle_synthetic_reproduces_true_poses_and_writes_outputs(tmp_path: Pat
     assert height["source"] == "estimated" and height["value_m"] == pytest.approx(CAMERA_HEIGHT, rel=1e-3), height
     assert rows[1]["camera_height_unavailable"] and not rows[-1]["camera_height_unavailable"]
     assert float(rows[-1]["camera_height"]) == pytest.approx(CAMERA_HEIGHT, rel=1e-3)
+    # the motion model: the drive's first 5 measured steps run along the optical axis (exact flow): a car
+    motion = summary["motion"]
+    assert (motion["setting"], motion["motion"], motion["judged_from_frame"]) == ("auto", "car", 6), motion
+    assert max(motion["off_axis_deg"]) < 10.0 and motion["settings"]["planar"] == "pnp", motion
 
 
 def test_interrupted_run_leaves_a_valid_prefix(tmp_path: Path) -> None:
