@@ -97,6 +97,16 @@ def check_camera_height(height: float | None, setting: str) -> None:
           f"m); for {height} cm give {float(height) / 100:g}")
 
 
+def check_direction_confirmation(frames: int | None, by_pnp_deg: float | None, section: str) -> None:
+    """The direction gate's confirmations of a new direction (``confirm_direction_frames``,
+    ``confirm_direction_by_pnp_deg``) as a car's ``tracker.gate`` or a hand's ``tracker.handheld`` sets them: null
+    (off), or at least 2 frames and an angle in (0, 180) degrees; one line naming ``section``'s field otherwise."""
+    check(frames is None or int(frames) >= 2,
+          f"{section}.confirm_direction_frames={frames}; expected null (off) or >= 2")
+    check(by_pnp_deg is None or 0.0 < float(by_pnp_deg) < 180.0,
+          f"{section}.confirm_direction_by_pnp_deg={by_pnp_deg}; expected null (off) or an angle in (0, 180) degrees")
+
+
 @dataclass
 class ModelSelectionConfig:
     """E-tracker or PnP-tracker (``tracker.model_selection``).
@@ -481,11 +491,7 @@ class GateConfig:
         check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
                f"tracker.gate: length_window={self.length_window} (expected >= 1), max_consecutive="
                f"{self.max_consecutive} (expected >= 0)")
-        check(self.confirm_direction_frames is None or int(self.confirm_direction_frames) >= 2,
-              f"tracker.gate.confirm_direction_frames={self.confirm_direction_frames}; expected null (off) or >= 2")
-        check(self.confirm_direction_by_pnp_deg is None or 0.0 < float(self.confirm_direction_by_pnp_deg) < 180.0,
-              f"tracker.gate.confirm_direction_by_pnp_deg={self.confirm_direction_by_pnp_deg}; expected null (off) "
-              "or an angle in (0, 180) degrees")
+        check_direction_confirmation(self.confirm_direction_frames, self.confirm_direction_by_pnp_deg, "tracker.gate")
         check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
                                                       f"{self.min_inlier_fraction}; expected [0, 1)")
 
@@ -514,11 +520,8 @@ class HandheldConfig:
 
     def __post_init__(self) -> None:
         self.planar = choice(PlanarMotion, self.planar, "tracker.handheld.planar")
-        check(self.confirm_direction_frames is None or int(self.confirm_direction_frames) >= 2,
-              f"tracker.handheld.confirm_direction_frames={self.confirm_direction_frames}; expected null (off) or >= 2")
-        check(self.confirm_direction_by_pnp_deg is None or 0.0 < float(self.confirm_direction_by_pnp_deg) < 180.0,
-              f"tracker.handheld.confirm_direction_by_pnp_deg={self.confirm_direction_by_pnp_deg}; expected null "
-              "(off) or an angle in (0, 180) degrees")
+        check_direction_confirmation(self.confirm_direction_frames, self.confirm_direction_by_pnp_deg,
+                                     "tracker.handheld")
 
 
 @dataclass

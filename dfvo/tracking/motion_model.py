@@ -16,13 +16,13 @@ any length.
 
 from __future__ import annotations
 
-import math
 import statistics
 from dataclasses import asdict, dataclass
 
 import torch
 
 from dfvo.tracking.config import ModelSelectionMethod, MotionModel, PlanarMotion, TrackerConfig
+from dfvo.tracking.gates import angle_deg
 
 __all__ = ["MotionSettings", "MotionJudge", "motion_settings", "may_use_homography", "off_axis_deg"]
 
@@ -50,21 +50,13 @@ def motion_settings(cfg: TrackerConfig, motion: MotionModel) -> MotionSettings:
     return MotionSettings(g.confirm_direction_frames, g.confirm_direction_by_pnp_deg, cfg.model_selection.planar)
 
 
-def may_use_homography(cfg: TrackerConfig) -> bool:
-    """Whether any motion this configuration may run uses the homography's decomposition (so the batched E-tracker
-    computes it for every pair)."""
-    models = [MotionModel.car, MotionModel.handheld] if cfg.motion == MotionModel.auto else [cfg.motion]
-    return any(motion_settings(cfg, m).planar == PlanarMotion.homography for m in models)
-
-
 def off_axis_deg(direction: torch.Tensor) -> float:
     """Angle (degrees, 0-90) between a translation ``direction`` (3,) and the optical axis, either way along it; NaN
     for a zero vector."""
-    d = direction.to(torch.float64)
-    n = float(d.norm())
-    if not n > 0.0:
+    if not float(direction.norm()) > 0.0:
         return float("nan")
-    return math.degrees(math.acos(min(1.0, abs(float(d[2])) / n)))
+    angle = angle_deg(direction, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    return min(angle, 180.0 - angle)
 
 
 class MotionJudge:
@@ -94,11 +86,10 @@ class MotionJudge:
 
     @property
     def may_use_homography(self) -> bool:
-        """Whether the frames to come may take the homography's decomposition (the motion in force uses it, or
-        ``auto`` has not judged yet and a hand's settings would)."""
-        if self.deciding:
-            return may_use_homography(self.cfg)
-        return self.settings.planar == PlanarMotion.homography
+        """Whether the frames to come may take the homography's decomposition: the motion in force uses it, or
+        ``auto`` has not judged yet and either motion's settings would."""
+        motions = [MotionModel.car, MotionModel.handheld] if self.deciding else [self.motion]
+        return any(motion_settings(self.cfg, m).planar == PlanarMotion.homography for m in motions)
 
     @property
     def deciding(self) -> bool:
@@ -141,3 +132,9 @@ class MotionJudge:
                     f"tracker.motion={self.cfg.motion.value}" if self.cfg.motion != MotionModel.auto else
                     f"tracker.motion=auto: not judged ({len(self.angles)} of {int(self.cfg.motion_auto.frames)} "
                     "frames measured a direction); a car's settings throughout")}
+
+
+def may_use_homography(cfg: TrackerConfig) -> bool:
+    """Whether a sequence tracked with ``cfg`` may take the homography's decomposition on its first frames (so the
+    batched E-tracker computes it): :attr:`MotionJudge.may_use_homography` of a new sequence."""
+    return MotionJudge(cfg).may_use_homography

@@ -533,9 +533,10 @@ class VisualOdometry:
 
     def _new_direction(self, st: FrameState, kind: str, direction: torch.Tensor, reason: str | None) -> str | None:
         """The direction gate's verdict ``reason`` on the ``kind`` (``E``, ``PnP``) tracker's ``direction`` (3,),
-        overruled when the results of the last ``gate.confirm_direction_frames - 1`` frames, each rejected by this
-        gate, agree with it (within ``gate.max_direction_change_deg`` of it): the motion turned for good (a hand, not
-        a car; off by default); or, for ``E``, when PnP's result of this frame confirmed it
+        overruled when the results of the last ``confirm_direction_frames - 1`` frames (the motion's settings:
+        ``tracker.gate``'s for a car, ``tracker.handheld``'s for a hand), each rejected by this gate, agree with it
+        (within ``gate.max_direction_change_deg`` of it): the motion turned for good (a hand, not a car; off for a
+        car by default); or, for ``E``, when PnP's result of this frame confirmed it
         (:meth:`_trackers_agree_on_turn`)."""
         if reason is None:
             return None
