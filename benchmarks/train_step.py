@@ -18,6 +18,7 @@ shares.
 
     OMP_NUM_THREADS=1 python benchmarks/train_step.py --threads 1
     OMP_NUM_THREADS=1 python benchmarks/train_step.py --recipes flow_allspeed:sup --precisions 32-true auto
+    OMP_NUM_THREADS=1 python benchmarks/train_step.py --recipes depth_small --precisions auto --old-code OLD --steady
 """
 
 from __future__ import annotations
@@ -37,19 +38,28 @@ from typing import Any
 import lightning as L
 import torch
 from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RECIPES = ["depth_stage2", "flow_allspeed:sup", "flow_allspeed:mix"]
 
 
 class StepTimer(L.Callback):
-    """Wall seconds of every training step, from the end of the previous one (the first from the start of training)."""
+    """Wall seconds of every training step, from the end of the previous one (the first from the start of training).
 
-    def __init__(self) -> None:
+    ``steady``: read every training sample once before the clock starts, as a long run's first epoch does (the
+    synthetic frames a depth recipe keeps, ``data.keep_frames``, are then rendered): the steps of the epochs after."""
+
+    def __init__(self, steady: bool = False) -> None:
         self.times: list[float] = []
         self._last: float | None = None
+        self.steady = steady
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.steady:
+            data = trainer.datamodule.train_set
+            for i in range(len(data)):
+                data[i]
         self._last = time.perf_counter()
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
@@ -76,12 +86,14 @@ def recipe_overrides(recipe: str, steps: int) -> list[str]:
     return out
 
 
-def time_recipe(recipe: str, precision: str, steps: int, warmup: int, threads: int, runs_dir: Path) -> list[float]:
+def time_recipe(recipe: str, precision: str, steps: int, warmup: int, threads: int, runs_dir: Path,
+                steady: bool = False) -> list[float]:
     """Per-step seconds of ``steps`` timed steps after ``warmup`` steps of ``recipe`` at ``precision``, in this
-    process, with the ``dfvo`` that ``import dfvo`` finds (the step timer joins every Lightning Trainer built)."""
+    process, with the ``dfvo`` that ``import dfvo`` finds (the step timer joins every Lightning Trainer built). A
+    recipe that distils from a teacher (``model.teacher``) reads it from ``runs_dir`` as the campaign does."""
     from dfvo.training.runner import run_training
 
-    timer = StepTimer()
+    timer = StepTimer(steady)
     init = L.Trainer.__init__
 
     def with_timer(self: L.Trainer, *args: Any, **kwargs: Any) -> None:
@@ -95,6 +107,10 @@ def time_recipe(recipe: str, precision: str, steps: int, warmup: int, threads: i
         if recipe.startswith("flow"):
             overrides.append(f"data.cache_dir={runs_dir / 'render_cache'}")
         with initialize_config_module("dfvo.conf.train", version_base="1.3"):
+            teacher = OmegaConf.select(compose("train", overrides=[*overrides, f"runs_dir={runs_dir}"]),
+                                       "model.teacher", default=None)
+            if teacher:
+                overrides.append(f"model.teacher={teacher}")
             cfg = compose("train", overrides=overrides)
         L.Trainer.__init__ = with_timer  # type: ignore[method-assign]
         try:
@@ -104,10 +120,11 @@ def time_recipe(recipe: str, precision: str, steps: int, warmup: int, threads: i
     return timer.times[warmup:]
 
 
-def time_other_code(code: Path, recipe: str, steps: int, warmup: int, threads: int, runs_dir: Path) -> list[float]:
+def time_other_code(code: Path, recipe: str, steps: int, warmup: int, threads: int, runs_dir: Path,
+                    steady: bool = False) -> list[float]:
     """:func:`time_recipe` of another checkout's ``dfvo`` (its own default precision), in a subprocess."""
     cmd = [sys.executable, __file__, "--worker", recipe, "--steps", str(steps), "--warmup", str(warmup),
-           "--threads", str(threads), "--runs-dir", str(runs_dir)]
+           "--threads", str(threads), "--runs-dir", str(runs_dir), *(["--steady"] if steady else [])]
     env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": str(threads)}
     res = subprocess.run(cmd, cwd=code, capture_output=True, text=True, env=env)
     if res.returncode:
@@ -128,13 +145,15 @@ def main() -> None:
     p.add_argument("--runs-dir", type=Path,
                    default=Path(os.environ.get("DFVO_RUNS_DIR", "~/dfvo-runs")).expanduser())
     p.add_argument("--kitti-raw", type=Path, default=None)
+    p.add_argument("--steady", action="store_true",
+                   help="read every training sample once before timing: the steps after a long run's first epoch")
     p.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     a = p.parse_args()
     root = a.kitti_raw or Path(os.environ.get("DFVO_KITTI_RAW_ROOT", REPO.parent / "shared" / "data" / "kitti_raw"))
     os.environ["DFVO_KITTI_RAW_ROOT"] = str(root)
     torch.set_num_threads(a.threads)
     if a.worker:  # one timing of the dfvo on PYTHONPATH, for --old-code
-        print(json.dumps(time_recipe(a.worker, "code default", a.steps, a.warmup, a.threads, a.runs_dir)))
+        print(json.dumps(time_recipe(a.worker, "code default", a.steps, a.warmup, a.threads, a.runs_dir, a.steady)))
         return
     from dfvo.training.precision import cpu_has_bf16, resolve_precision  # not in an --old-code worker's dfvo
 
@@ -144,8 +163,9 @@ def main() -> None:
         runs: dict[str, list[float]] = {v: [] for v in variants}
         for r in range(a.rounds):
             for v in (variants if r % 2 == 0 else list(reversed(variants))):
-                times = (time_other_code(a.old_code, recipe, a.steps, a.warmup, a.threads, a.runs_dir)
-                         if v == "old code" else time_recipe(recipe, v, a.steps, a.warmup, a.threads, a.runs_dir))
+                times = (time_other_code(a.old_code, recipe, a.steps, a.warmup, a.threads, a.runs_dir, a.steady)
+                         if v == "old code" else time_recipe(recipe, v, a.steps, a.warmup, a.threads, a.runs_dir,
+                                                             a.steady))
                 runs[v].append(statistics.median(times) * 1e3)
         entry: dict[str, Any] = {}
         for v, ms in runs.items():
@@ -164,7 +184,7 @@ def main() -> None:
         "machine": platform.processor() or platform.machine(), "cpu_bf16": cpu_has_bf16(), "threads": a.threads,
         "torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "old_code": str(a.old_code) if a.old_code else None, "steps_timed": a.steps, "warmup": a.warmup,
-        "rounds": a.rounds, "load_avg_1min": os.getloadavg()[0], "recipes": results}, indent=1))
+        "rounds": a.rounds, "steady": a.steady, "load_avg_1min": os.getloadavg()[0], "recipes": results}, indent=1))
 
 
 if __name__ == "__main__":

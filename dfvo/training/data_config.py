@@ -83,7 +83,9 @@ class WorldsTrainDataConfig(TrainDataConfig):
     are held-out evaluation worlds), ``num_frames`` each, ``scenario`` (names; seed s gets ``scenario[s % len]``),
     ``speed``/``turn_rate`` (null: the scenario's; ``[v]`` or a range ``[lo, hi]`` drawn per world), ``device``
     (``cuda``: render on the GPU, with ``num_workers: 0``), ``frame_skips`` (depth: snippets (k-s, k, k+s); flow:
-    pairs (k, k+s), every s of the list)."""
+    pairs (k, k+s), every s of the list), ``keep_frames`` (depth snippets: every frame rendered once and kept in
+    memory, ~``worlds x num_frames x 7 x height x width x 4`` bytes per loading process, instead of rendered again
+    for each snippet and epoch: the same samples; false for worlds that do not fit in memory)."""
 
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3])
     num_frames: int = 50
@@ -92,6 +94,7 @@ class WorldsTrainDataConfig(TrainDataConfig):
     turn_rate: list[float] | None = None
     device: str = "cpu"
     frame_skips: list[int] = field(default_factory=lambda: [1])
+    keep_frames: bool = True
 
 
 @dataclass

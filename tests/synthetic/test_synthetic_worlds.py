@@ -270,6 +270,28 @@ def test_flow_dataset_frame_skips_and_scenario_mix() -> None:
             SyntheticFlowDataset([0], num_frames=6, height=48, width=160, frame_skips=bad)
 
 
+def test_kept_frames_give_the_same_snippets_rendering_each_frame_once() -> None:
+    """``keep_frames``: every item bit for bit the item rendered afresh (images of neighbours shaded with the right
+    view, or alone), in any order and twice over; each frame of each world rendered once."""
+    fresh = SyntheticSequenceDataset([3, 8], num_frames=7, height=48, width=160, frame_skips=(1, 2),
+                                     scenario=["city", "highway"])
+    kept = SyntheticSequenceDataset([3, 8], num_frames=7, height=48, width=160, frame_skips=(1, 2),
+                                    scenario=["city", "highway"], keep_frames=True)
+    calls: list[tuple[int, int]] = []
+    for w, world in enumerate(kept.worlds):
+        def counted(index: int, *args: object, _w: int = w, _render=world.render, **kwargs: object) -> dict:
+            calls.append((_w, index))
+            return _render(index, *args, **kwargs)
+        world.render = counted  # type: ignore[method-assign]
+    order = torch.randperm(len(fresh), generator=torch.Generator().manual_seed(0)).tolist()
+    for i in order + order[::-1]:
+        a, b = fresh[i], kept[i]
+        assert a.keys() == b.keys()
+        for key in a:
+            assert torch.equal(a[key], b[key]), (i, key)
+    assert sorted(calls) == [(w, k) for w in range(2) for k in range(7)]  # 7 frames each, once
+
+
 def test_held_out_worlds_convention() -> None:
     worlds = held_out_worlds()
     assert {w.scenario for w in worlds} == set(TRAINING_SCENARIOS)
