@@ -109,6 +109,8 @@ def main() -> None:
     parser.add_argument("--height", type=int, default=96)
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--time-size", default="192x640",
+                        help="HxW of the timed pair (96x320: the size inference runs the network at)")
     parser.add_argument("--skip-timing", action="store_true")
     parser.add_argument("--skip-eval", action="store_true")
     args = parser.parse_args()
@@ -116,11 +118,13 @@ def main() -> None:
     result: dict = {"machine": f"{platform.processor() or platform.machine()}, torch threads {args.threads}",
                     "torch": torch.__version__}
     if not args.skip_timing:
-        result["forward_backward_640x192"] = {}
+        th, tw = (int(v) for v in args.time_size.split("x"))
+        key = f"forward_backward_{tw}x{th}"
+        result[key] = {}
         for variant in ("default", "small", "tiny"):
             net = FlowNet(variant)
             params = sum(p.numel() for p in net.parameters())
-            result["forward_backward_640x192"][variant] = {**time_forward_backward(net), "params": params}
+            result[key][variant] = {**time_forward_backward(net, th, tw), "params": params}
     if not args.skip_eval:
         net = FlowNet(args.variant)
         if args.checkpoint:

@@ -109,7 +109,9 @@ def time_recipe(recipe: str, precision: str, steps: int, warmup: int, threads: i
         with initialize_config_module("dfvo.conf.train", version_base="1.3"):
             teacher = OmegaConf.select(compose("train", overrides=[*overrides, f"runs_dir={runs_dir}"]),
                                        "model.teacher", default=None)
-            if teacher:
+            if teacher and recipe.endswith(":sup"):  # a flow teacher supervises KITTI pairs: none in this phase
+                overrides += ["model.teacher=null", "model.w_distill=0"]
+            elif teacher:
                 overrides.append(f"model.teacher={teacher}")
             cfg = compose("train", overrides=overrides)
         L.Trainer.__init__ = with_timer  # type: ignore[method-assign]

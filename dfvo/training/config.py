@@ -235,6 +235,12 @@ class FlowModelConfig:
             ``trainer.gradient_clip_val`` applies when this is null).
         augment: mode ``mixed``: flips, greyscale and jitter (:class:`dfvo.training.flow_augment.FlowAugmentConfig`;
             null: none).
+        teacher: mode ``mixed``: a trained flow network's weights file (any variant, e.g. the shipped
+            ``checkpoints/flow.safetensors``): distillation. On each step's KITTI (self-supervised) pairs, as the
+            student sees them (augmented), its forward and backward flows supervise the student's by the
+            multi-scale EPE over all pixels, weight ``w_distill``: the teacher's behaviour on real footage carried into
+            a smaller variant (``variant: tiny``), while the synthetic pairs keep their true flow.
+        w_distill: weight of the distillation loss (0: off; > 0 needs ``teacher``).
     """
 
     _target_: str = "dfvo.training.flow_module.FlowModule"
@@ -256,6 +262,8 @@ class FlowModelConfig:
     self_weight: float = 1.0
     grad_clip_norm: float | None = None
     augment: FlowAugmentConfig | None = None
+    teacher: str | None = None
+    w_distill: float = 0.0
 
     def __post_init__(self) -> None:
         from dfvo.models.flow_net import FlowNetConfig  # deferred: torch; composing a config needs none
@@ -275,6 +283,17 @@ class FlowModelConfig:
         if (self.mode == FlowMode.mixed) != bool(self.phases):
             raise ValueError("model.phases: mode 'mixed' (model=flow_mix) trains by phases and needs at least one; "
                              f"mode {self.mode.value!r} has none (got {len(self.phases)})")
+        if self.w_distill < 0:
+            raise ValueError(f"model.w_distill={self.w_distill}; expected >= 0")
+        if self.w_distill > 0 and not self.teacher:
+            raise ValueError(f"model.w_distill={self.w_distill} needs model.teacher (a trained flow network's weights "
+                             "file to distil from)")
+        if self.teacher and not self.w_distill > 0:
+            raise ValueError(f"model.teacher={self.teacher} has no effect with model.w_distill={self.w_distill}; "
+                             "expected a positive weight (or no teacher)")
+        if self.teacher and not (self.mode == FlowMode.mixed and any(p.kitti for p in self.phases)):
+            raise ValueError(f"model.teacher={self.teacher}: the teacher supervises the KITTI pairs of mode 'mixed' "
+                             "(model=flow_mix with a phase of kitti: true); this run has none")
 
 
 MODEL_SCHEMAS: dict[str, type] = {"depth": DepthModelConfig, "flow": FlowModelConfig}

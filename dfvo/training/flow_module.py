@@ -17,7 +17,9 @@ Mode ``mixed``, one training step (global step t, in phase P of ``model.phases``
        batch), greyscale (per pair) and jittered (per image), then the ``self`` pairs mirrored (per batch)
        (:mod:`dfvo.training.flow_augment`);
     2. loss = mean over the directions of the multi-scale EPE (``multiscale_epe``, scale s weighted 1/2^s, visible
-       pixels) of the ``sup`` pairs + ``model.self_weight`` x the self-supervised loss of the ``self`` pairs;
+       pixels) of the ``sup`` pairs + ``model.self_weight`` x the self-supervised loss of the ``self`` pairs
+       (+ ``model.w_distill`` x the multi-scale EPE of the ``self`` pairs' flows against a trained network's,
+       ``model.teacher``, on the same augmented images: :func:`distillation_loss`);
     3. Adam at P's rate (x ``lr_gamma`` from ``lr_drop_fraction`` of P's steps on; a step-interval LambdaLR), the
        gradient's global norm clipped at ``model.grad_clip_norm`` (``model=flow_mix``: 10).
     Validation: per held-out scenario, the forward-backward flow of the working-size images resized to the network
@@ -43,7 +45,7 @@ from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.flow_warp import flow_magnitude
 from dfvo.matching.selection import select_correspondences
 from dfvo.models.flow_net import FlowNet
-from dfvo.sources.networks import resize_images
+from dfvo.sources.networks import NetworkFlow, resize_images
 from dfvo.training.config import FlowMode, FlowModelConfig, typed
 from dfvo.training.flow_augment import augment_self_supervised, augment_supervised
 from dfvo.training.flow_data import phase_at
@@ -78,6 +80,16 @@ def supervised_flow_loss(flows_fwd: list[torch.Tensor], flows_bwd: list[torch.Te
     return loss, {"epe": sum(t[1][0] for t in terms).detach() / len(terms)}
 
 
+def distillation_loss(flows_fwd: list[torch.Tensor], flows_bwd: list[torch.Tensor], teacher_fwd: torch.Tensor,
+                      teacher_bwd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean over the two directions of the multi-scale EPE (``multiscale_epe``, every pixel) of the student's flows
+    (lists of (B,2,H,W), finest first, at the input size) against the teacher's (B,2,H,W); and the finest scale's
+    EPE (detached), mean of the directions. Computed in float32."""
+    f = multiscale_epe([x.float() for x in flows_fwd], teacher_fwd.float())
+    b = multiscale_epe([x.float() for x in flows_bwd], teacher_bwd.float())
+    return 0.5 * (f[0] + b[0]), 0.5 * (f[1][0] + b[1][0]).detach()
+
+
 class FlowModule(L.LightningModule):
     """Train :class:`dfvo.models.flow_net.FlowNet` (task ``"flow"`` of ``dfvo.training.runner``).
 
@@ -107,7 +119,19 @@ class FlowModule(L.LightningModule):
         self.net = FlowNet(m.variant)
         if m.init_from:
             load_flow_weights(self.net, m.init_from)
+        self.w_distill = float(m.w_distill)
+        # the distillation teacher, loaded when training first needs it; in a tuple so that it is no submodule (not
+        # in checkpoints, the optimiser or the exported weights)
+        self._teacher: tuple[FlowNet, ...] = ()
         self.save_hyperparameters({"cfg": recorded_config(cfg)})
+
+    def teacher(self) -> FlowNet:
+        """The distillation teacher of ``model.teacher`` (its variant from the file, as inference loads it), frozen
+        and in evaluation mode, on the student's device."""
+        if not self._teacher:
+            loaded = NetworkFlow(find_checkpoint(str(self.model_cfg.teacher), "model.teacher")).model
+            self._teacher = (loaded.requires_grad_(False).eval(),)
+        return self._teacher[0].to(self.device)
 
     def export_network(self) -> tuple[torch.nn.Module, dict[str, str]]:
         """The network inference loads and the metadata describing it (see
@@ -169,11 +193,19 @@ class FlowModule(L.LightningModule):
             if self.augment is not None and generator is not None:
                 k1, k2 = augment_self_supervised(k1, k2, self.augment, generator)
             kf, kb = self.net.forward_backward(k1, k2, all_scales=True)
+            teacher_flows = None
+            if self.w_distill > 0:
+                with torch.no_grad():
+                    teacher_flows = self.teacher().forward_backward(k1, k2)
             with float32_losses(self.device):
                 self_loss, self_terms = self._self_supervised(k1.float(), k2.float(), [f.float() for f in kf],
                                                               [f.float() for f in kb])
-            loss = loss + self.self_weight * self_loss
-            terms.update(self_loss=self_loss.detach(), **{f"self_{k}": v for k, v in self_terms.items()})
+                loss = loss + self.self_weight * self_loss
+                terms.update(self_loss=self_loss.detach(), **{f"self_{k}": v for k, v in self_terms.items()})
+                if teacher_flows is not None:
+                    distill, distill_epe = distillation_loss(kf, kb, *teacher_flows)
+                    loss = loss + self.w_distill * distill
+                    terms.update(distill=distill.detach(), distill_epe=distill_epe)
             if view is None:
                 view = (k1, k2, kf[0].float().detach(), kb[0].float().detach(), None)
         if sup is None and kitti is None:

@@ -91,12 +91,14 @@ def test_flow_fast_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["flow_allspeed", "flow_gpu"])
+@pytest.mark.parametrize("name", ["flow_allspeed", "flow_gpu", "flow_tiny"])
 def test_other_flow_experiments_smoke(tmp_path: Path, kitti_raw_root: Path, name: str) -> None:
-    """The other step-scheduled flow experiments, with the phases shortened so the mixed phase runs too."""
+    """The other step-scheduled flow experiments, with the phases shortened so the mixed phase runs too (flow_tiny:
+    with the shipped flow.safetensors teaching its KITTI pairs)."""
     out = _run(tmp_path, f"experiment={name}", f"data.root={kitti_raw_root.parent}", *TINY_FLOW,
                "model.init_from=null", "model.phases.0.steps=1")
     assert out["global_step"] == 3 and "train/self_loss" in out["metrics"]
+    assert ("train/distill_epe" in out["metrics"]) == (name == "flow_tiny")
 
 
 @pytest.mark.slow

@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 from torch.utils.data import DataLoader
 
 from dfvo.losses.flow_losses import multiscale_epe, self_supervised_flow_loss
+from dfvo.matching.flow_warp import flow_magnitude
 from dfvo.training.flow_data import FlowMixDataModule, FlowStepBatches, SyntheticPairs, phase_at
 from dfvo.training.flow_module import FlowModule
 from dfvo.training.flow_renders import (
@@ -272,3 +273,49 @@ def test_resume_from_another_model_kind_is_refused(tmp_path: Path) -> None:
             cfg = compose("train", overrides=[f"runs_dir={tmp_path}", f"ckpt_path={first['last_ckpt']}", "name=d"])
         run_training(cfg)
     assert OmegaConf.select(cfg, "model.name") == "depth_stereo"
+
+
+# ------------------------------------------------------------------------------------------------ distillation
+def test_distillation_is_the_teachers_flow_and_teaches_it(tmp_path: Path, world: dict) -> None:
+    """``model.teacher`` (the shipped network): a student with the teacher's own weights has a finest-scale
+    distillation EPE of 0 on the KITTI pairs; a fresh tiny student's is large and falls when trained on the
+    distillation alone; the teacher is in neither the checkpointed state nor the optimised parameters."""
+    teacher_file = "checkpoints/flow.safetensors"
+    pairs = SyntheticPairs([world])
+    k = pairs.take(torch.tensor([2, 4]))
+    batch = {"step": torch.tensor(0), "self": {"image": k["image"], "image_next": k["image_next"]}}
+    distil = (f"model.teacher={teacher_file}", "model.w_distill=1.0", "model.self_weight=0",
+              "model.phases=[{name: mix, steps: 5, lr: 1.0e-3, synthetic: false, kitti: true}]")
+
+    same = FlowModule(_cfg(tmp_path, *distil, "model.variant=small"))
+    same.net.load_state_dict(same.teacher().state_dict())
+    _, terms, _ = same.mixed_loss(batch, None)
+    assert float(terms["distill_epe"]) < 1e-5
+
+    student = FlowModule(_cfg(tmp_path, *distil))
+    assert not any("teacher" in key for key in student.state_dict())
+    assert sum(p.numel() for p in student.parameters()) == sum(p.numel() for p in student.net.parameters())
+    with torch.no_grad():
+        target = student.teacher().forward_backward(batch["self"]["image"], batch["self"]["image_next"])
+    assert float(flow_magnitude(target[0]).mean()) > 0.5  # something to learn
+    opt = torch.optim.Adam(student.net.parameters(), lr=1e-3)
+    first = None
+    for _ in range(40):
+        loss, terms, _ = student.mixed_loss(batch, None)
+        first = float(terms["distill_epe"]) if first is None else first
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert first > 0.3 and float(terms["distill_epe"]) < 0.5 * first
+    assert any(p.grad is not None for p in student.net.parameters())
+    assert all(p.grad is None for p in student.teacher().parameters())
+
+
+def test_a_teacher_needs_kitti_pairs_and_a_weight(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"^model.teacher=t.safetensors: the teacher supervises the KITTI pairs"):
+        FlowModule(_cfg(tmp_path, "model.teacher=t.safetensors", "model.w_distill=1",
+                        "model.phases=[{name: sup, steps: 2}]"))
+    with pytest.raises(ValueError, match=r"^model.w_distill=1.0 needs model.teacher"):
+        FlowModule(_cfg(tmp_path, "model.w_distill=1"))
+    with pytest.raises(ValueError, match=r"^model.teacher=t.safetensors has no effect with model.w_distill=0.0"):
+        FlowModule(_cfg(tmp_path, "model.teacher=t.safetensors"))
