@@ -206,6 +206,14 @@ class SyntheticWorld:
         first_dyn = len(self._scene.half) - self._scene.num_dynamic + 1
         return (ids >= first_dyn)[None]
 
+    def object_kind(self, index: int) -> torch.Tensor:
+        """(1,H,W) int64 what each left-image pixel of frame ``index`` shows: -1 sky, 0 the ground plane, else the
+        material kind of its object (``KIND_*`` of :mod:`dfvo.synthetic.scene`: ``KIND_CAR`` for parked and moving
+        cars alike, ``KIND_BUILDING``, ``KIND_POLE``, ...)."""
+        ids = self.view(self._check_index(index)).ids
+        kinds = torch.as_tensor(self._scene.kind, dtype=torch.int64, device=ids.device)
+        return torch.where(ids > 0, kinds[(ids - 1).clamp_min(0)], ids.clamp_min(-1))[None]
+
     def flow(self, i: int, j: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Exact flow (2,H,W) from left image ``i`` to left image ``j`` and its validity (1,H,W) bool."""
         i, j = self._check_index(i), self._check_index(j)

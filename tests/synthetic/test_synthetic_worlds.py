@@ -292,6 +292,27 @@ def test_kept_frames_give_the_same_snippets_rendering_each_frame_once() -> None:
     assert sorted(calls) == [(w, k) for w in range(2) for k in range(7)]  # 7 frames each, once
 
 
+def test_object_kind_names_what_each_pixel_shows() -> None:
+    """``object_kind``: sky exactly where the depth is the sky's, every moving vehicle's pixel a car, parked cars too
+    (cars beyond the moving ones), and each object pixel the kind of the box the ray hit."""
+    from dfvo.synthetic.render import SKY_DEPTH
+    from dfvo.synthetic.scene import KIND_CAR
+
+    cars = moving = 0
+    for scenario in ("drive", "highway"):
+        world = SyntheticWorld(seed=1000, num_frames=12, height=48, width=160, scenario=scenario)
+        for k in range(0, 12, 3):
+            kind, dyn = world.object_kind(k), world.dynamic_mask(k)
+            assert kind.shape == (1, 48, 160) and kind.dtype == torch.int64
+            assert torch.equal(kind == -1, world.depth(k) == SKY_DEPTH)
+            assert bool((kind[dyn] == KIND_CAR).all())
+            ids = world.view(k).ids
+            hit = ids > 0
+            assert torch.equal(kind[0][hit], torch.as_tensor(world._scene.kind)[ids[hit] - 1])
+            cars, moving = cars + int((kind == KIND_CAR).sum()), moving + int(dyn.sum())
+    assert cars > moving > 0
+
+
 def test_held_out_worlds_convention() -> None:
     worlds = held_out_worlds()
     assert {w.scenario for w in worlds} == set(TRAINING_SCENARIOS)
