@@ -46,8 +46,8 @@ from dfvo.training.data_config import (
 from dfvo.training.flow_augment import FlowAugmentConfig
 from dfvo.validation import choice, choices, positive, typed
 
-__all__ = ["MonitorMode", "FlowMode", "CropMode", "Precision", "MatmulPrecision", "DepthModelConfig", "FlowLossConfig",
-           "FlowPhase", "FlowModelConfig", "MODEL_SCHEMAS", "TrainDataConfig", "WorldsTrainDataConfig",
+__all__ = ["MonitorMode", "FlowMode", "CropMode", "Precision", "MatmulPrecision", "check_distillation",
+           "DepthModelConfig", "FlowLossConfig", "FlowPhase", "FlowModelConfig", "MODEL_SCHEMAS", "TrainDataConfig", "WorldsTrainDataConfig",
            "SyntheticTrainDataConfig", "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig",
            "KittiRawSyntheticTrainDataConfig", "FlowMixTrainDataConfig", "FlowPairTrainDataConfig",
            "FlyingChairsTrainDataConfig", "FlyingThingsTrainDataConfig", "SintelTrainDataConfig",
@@ -73,6 +73,17 @@ class FlowMode(StrEnum):
 
 
 # ----------------------------------------------------------------------------------------------------- models
+def check_distillation(teacher: str | None, w_distill: float, network: str) -> None:
+    """``model.teacher`` and ``model.w_distill`` of a ``network`` (``depth``, ``flow``) model go together: a positive
+    weight needs a teacher, a teacher a positive weight; one line naming both otherwise."""
+    if w_distill > 0 and not teacher:
+        raise ValueError(f"model.w_distill={w_distill} needs model.teacher (a trained {network} network's weights "
+                         "file to distil from)")
+    if teacher and not w_distill > 0:
+        raise ValueError(f"model.teacher={teacher} has no effect with model.w_distill={w_distill}; "
+                         "expected a positive weight (or no teacher)")
+
+
 @dataclass
 class DepthModelConfig:
     """Self-supervised depth (and pose) training (:class:`dfvo.training.depth_module.DepthPoseModule`).
@@ -159,12 +170,7 @@ class DepthModelConfig:
             raise ValueError("model.w_depth_hints > 0 needs model.stereo = true (hints reproject the stereo partner)")
         if self.w_consistency > 0 and not self.temporal:
             raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
-        if self.w_distill > 0 and not self.teacher:
-            raise ValueError(f"model.w_distill={self.w_distill} needs model.teacher (a trained depth network's weights "
-                             "file to distil from)")
-        if self.teacher and not self.w_distill > 0:
-            raise ValueError(f"model.teacher={self.teacher} has no effect with model.w_distill={self.w_distill}; "
-                             "expected a positive weight (or no teacher)")
+        check_distillation(self.teacher, self.w_distill, "depth")
         if not 0 < self.width_multiplier <= 4:
             raise ValueError(f"model.width_multiplier={self.width_multiplier}; expected a channel multiplier in "
                              "(0, 4] (1: the monodepth2 network; the image width is data.width)")
@@ -285,12 +291,7 @@ class FlowModelConfig:
                              f"mode {self.mode.value!r} has none (got {len(self.phases)})")
         if self.w_distill < 0:
             raise ValueError(f"model.w_distill={self.w_distill}; expected >= 0")
-        if self.w_distill > 0 and not self.teacher:
-            raise ValueError(f"model.w_distill={self.w_distill} needs model.teacher (a trained flow network's weights "
-                             "file to distil from)")
-        if self.teacher and not self.w_distill > 0:
-            raise ValueError(f"model.teacher={self.teacher} has no effect with model.w_distill={self.w_distill}; "
-                             "expected a positive weight (or no teacher)")
+        check_distillation(self.teacher, self.w_distill, "flow")
         if self.teacher and not (self.mode == FlowMode.mixed and any(p.kitti for p in self.phases)):
             raise ValueError(f"model.teacher={self.teacher}: the teacher supervises the KITTI pairs of mode 'mixed' "
                              "(model=flow_mix with a phase of kitti: true); this run has none")
