@@ -47,8 +47,8 @@ from dfvo.training.flow_augment import FlowAugmentConfig
 from dfvo.validation import choice, choices, positive, typed
 
 __all__ = ["MonitorMode", "FlowMode", "CropMode", "Precision", "MatmulPrecision", "check_distillation",
-           "DepthModelConfig", "FlowLossConfig", "FlowPhase", "FlowModelConfig", "MODEL_SCHEMAS", "TrainDataConfig", "WorldsTrainDataConfig",
-           "SyntheticTrainDataConfig", "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig",
+           "DepthModelConfig", "FlowLossConfig", "FlowPhase", "FlowModelConfig", "MODEL_SCHEMAS", "TrainDataConfig",
+           "WorldsTrainDataConfig", "SyntheticTrainDataConfig", "KittiRawTrainDataConfig", "KittiOdomTrainDataConfig",
            "KittiRawSyntheticTrainDataConfig", "FlowMixTrainDataConfig", "FlowPairTrainDataConfig",
            "FlyingChairsTrainDataConfig", "FlyingThingsTrainDataConfig", "SintelTrainDataConfig",
            "KittiFlowTrainDataConfig", "TRAIN_DATA_SCHEMAS", "PRECISIONS", "TrainerConfig", "TrainConfig",
