@@ -18,7 +18,8 @@
 # instead of HEAD's export: tests), CAMPAIGN_SNAPSHOT (the committed state's folder, default campaign/: tests).
 # Files: RUNS/campaign.log (every run's log lines, appended), RUNS/campaign.pid (the queue while it runs),
 # RUNS/code/SHA (the code the queue runs),
-# RUNS/NAME/ (each run: checkpoints/last.ckpt, weights.safetensors, finished.json when done).
+# RUNS/NAME/ (each run: checkpoints/last.ckpt, weights.safetensors, finished.json when done; continue_from.safetensors
+# when it was restored from committed weights alone).
 set -uo pipefail
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 RUNS="${DFVO_RUNS_DIR:-$HOME/dfvo-runs}"
@@ -30,6 +31,7 @@ PIDFILE="$RUNS/campaign.pid"
 STOPFILE="$RUNS/campaign.stop"
 SNAPSHOT="${CAMPAIGN_SNAPSHOT:-$REPO/campaign}"
 CODE_ROOT="$RUNS/code"
+CONTINUE_NAME="continue_from.safetensors"  # RUNS/NAME/: committed weights a run continues from (restore)
 export DFVO_KITTI_RAW_ROOT="${DFVO_KITTI_RAW_ROOT:-$REPO/../shared/data/kitti_raw}"
 
 say() { echo "[$(date '+%Y-%m-%d %H:%M:%S')] campaign: $*" | tee -a "$LOG"; }
@@ -65,6 +67,19 @@ restore() {  # a run with no checkpoint here, whose state was committed in campa
     cp "$SNAPSHOT/$name/last.ckpt" "$dir/checkpoints/last.ckpt"
     say "$name: restored the committed state $SNAPSHOT/$name/last.ckpt"
   fi
+  # an unfinished run committed as its weights alone (a depth run: last.ckpt is too large to commit) continues from
+  # them (train.py continue_from=RUNS/NAME/continue_from.safetensors: the epochs to go, the same rate schedule)
+  if [ ! -f "$dir/checkpoints/last.ckpt" ] && [ ! -f "$dir/finished.json" ] && [ ! -f "$dir/$CONTINUE_NAME" ] \
+      && [ ! -f "$SNAPSHOT/$name/finished.json" ] && [ ! -f "$SNAPSHOT/$name/last.ckpt" ] \
+      && [ -f "$SNAPSHOT/$name/weights.safetensors" ]; then
+    if mkdir -p "$dir" && cp "$SNAPSHOT/$name/weights.safetensors" "$dir/$CONTINUE_NAME.tmp" \
+        && mv "$dir/$CONTINUE_NAME.tmp" "$dir/$CONTINUE_NAME"; then
+      say "$name: no checkpoint here: continues from the committed weights $SNAPSHOT/$name/weights.safetensors" \
+          "(continue_from: the optimiser and the pose network anew)"
+    else
+      say "$name: could not copy the committed weights $SNAPSHOT/$name/weights.safetensors"
+    fi
+  fi
 }
 
 code_snapshot() {  # RUNS/code/SHA: the committed tree of HEAD (not the work tree's edits), exported once
@@ -95,9 +110,11 @@ run_queue() {
       say "$name: finished ($(tr -d '\n ' < "$RUNS/$name/finished.json")); next"
       continue
     fi
-    say "$name: start or resume: train.py $overrides"
+    local continued=""
+    [ -f "$RUNS/$name/$CONTINUE_NAME" ] && continued="continue_from=$RUNS/$name/$CONTINUE_NAME"
+    say "$name: start or resume: train.py $overrides${continued:+ $continued}"
     # shellcheck disable=SC2086  # the overrides are words of the queue line
-    (cd "$code" && OMP_NUM_THREADS="$THREADS" exec "$PYTHON" train.py $overrides name="$name" runs_dir="$RUNS" \
+    (cd "$code" && OMP_NUM_THREADS="$THREADS" exec "$PYTHON" train.py $overrides $continued name="$name" runs_dir="$RUNS" \
       threads="$THREADS" resume=auto trainer.print_every_n_steps=25 trainer.enable_progress_bar=false) \
       < /dev/null >> "$LOG" 2>&1 &
     child=$!

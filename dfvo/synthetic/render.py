@@ -130,7 +130,7 @@ def _slab(o: torch.Tensor, d: tuple[torch.Tensor, ...], hf: torch.Tensor) -> tor
         lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
         t_near = lo if t_near is None else torch.maximum(t_near, lo)
         t_far = hi if t_far is None else torch.minimum(t_far, hi)
-    hit = (t_far >= t_near) & (t_near > NEAR)
+    hit = (t_far >= t_near) & (t_far > NEAR)
     return torch.where(hit, t_near, torch.full_like(t_near, float("inf")))
 
 
@@ -226,6 +226,57 @@ def box_local_points(scene: Scene, view: View, rays: torch.Tensor, sel: torch.Te
     p_rel = view.rays_w.index_select(0, sel) * view.depth.reshape(-1).index_select(0, sel)[:, None]
     return (yaw_rotate(p_rel, view.box_cos.index_select(0, m), view.box_sin.index_select(0, m), inverse=True)
             + view.box_o.index_select(0, m))
+
+
+def sun_shadowed(scene: Scene, view: View, sel: torch.Tensor, towards_sun: torch.Tensor,
+                 chunk: int = 4096) -> torch.Tensor:
+    """(S,) bool: the hit points of the flat pixels ``sel`` (ground or object hits of ``view``) lie in an object's
+    cast shadow, i.e. the ray from the point towards the sun (``towards_sun``: (3,) unit vector, world axes) meets a
+    box or ellipsoid of the scene (posed at the view's frame) farther than ``NEAR`` from it. A point on a face
+    turned from the sun is "shadowed" by its own object (its Lambert term is already the ambient one).
+
+    The (point, object) pairs whose ray passes the object's bounding sphere are tested exactly (slab test or the
+    ellipsoid's far root), ``chunk`` points at a time, in box-local coordinates from the camera-relative hit points
+    (as :func:`box_local_points`), so the test keeps the casting's precision far from the origin."""
+    dev = view.depth.device
+    p_rel = view.rays_w.index_select(0, sel) * view.depth.reshape(-1).index_select(0, sel)[:, None]  # (S,3)
+    M = len(scene.half)
+    out = torch.zeros(len(sel), dtype=torch.bool, device=dev)
+    if M == 0 or len(sel) == 0:
+        return out
+    sun_w = towards_sun.to(dev).float()
+    sun = yaw_rotate(sun_w[None].expand(M, 3), view.box_cos, view.box_sin, inverse=True)  # (M,3) box axes
+    hf = torch.from_numpy(scene.half).float().to(dev)  # (M,3)
+    radius = hf.norm(dim=-1)
+    is_ell = torch.from_numpy(scene.shape == SHAPE_ELLIPSOID).to(dev)
+    centre = torch.from_numpy(view.box_centre - view.T_w_c[:3, 3]).float().to(dev)  # (M,3) camera-relative
+    for start in range(0, len(sel), chunk):
+        p = p_rel[start:start + chunk]
+        w = centre[:, None, :] - p[None]  # (M,N,3) point to box centre
+        along = w @ sun_w  # (M,N)
+        near_ray = (along > -radius[:, None]) & ((w * w).sum(-1) - along * along < (radius * radius)[:, None])
+        m, n = torch.nonzero(near_ray, as_tuple=True)
+        if len(m) == 0:
+            continue
+        c, s = view.box_cos.index_select(0, m), view.box_sin.index_select(0, m)
+        x, y, z = p.index_select(0, n).unbind(-1)
+        o = view.box_o.index_select(0, m)
+        q = torch.stack([c * x - s * z, y, s * x + c * z], -1) + o  # (K,3) box-local points
+        d, h = sun.index_select(0, m), hf.index_select(0, m)
+        # boxes: the slab test, a hit when the exit lies beyond NEAR and after the entry
+        t1, t2 = (-h - q) / d, (h - q) / d
+        t_near = torch.minimum(t1, t2).amax(-1)
+        t_far = torch.maximum(t1, t2).amin(-1)
+        hit = (t_far >= t_near) & (t_far > NEAR)
+        ell = torch.nonzero(is_ell.index_select(0, m)).squeeze(1)
+        if len(ell):  # ellipsoids: the far root of |(q + t d) / h|^2 = 1 beyond NEAR
+            qe, e = q[ell] / h[ell], d[ell] / h[ell]
+            a, b = (e * e).sum(-1), (qe * e).sum(-1)
+            disc = b * b - a * ((qe * qe).sum(-1) - 1.0)
+            hit[ell] = (disc >= 0) & ((-b + disc.clamp_min(0).sqrt()) / a > NEAR)
+        out[start:start + chunk] |= torch.zeros(len(p), dtype=torch.bool, device=dev).index_put_((n,), hit,
+                                                                                              accumulate=True)
+    return out
 
 
 def flow_between(scene: Scene, a: View, b: View, rays: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -5,7 +5,8 @@ Convention:
     -1 sky, 0 ground (coloured by ``Scene.ground``), ``1 + m`` object ``m``. A box hit gets the normal of the
     face it lies on and (h, y_up) coordinates on that face (h along the face from its left edge, y_up above
     the box bottom); an ellipsoid hit gets the ellipsoid normal and (azimuth, elevation) arc coordinates in
-    metres. Lighting is Lambertian under a fixed sun, so a surface point has one colour in every view.
+    metres. Lighting is Lambertian under a fixed sun, so a surface point has one colour in every view; with
+    ``shadows`` the objects cast shadows too (still one colour per point and frame in every view).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import math
 
 import torch
 
-from dfvo.synthetic.render import View, yaw_rotate
+from dfvo.synthetic.render import View, sun_shadowed, yaw_rotate
 from dfvo.synthetic.scene import (
     KIND_BARRIER,
     KIND_BUILDING,
@@ -52,26 +53,43 @@ def take(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return x.index_select(0, index)
 
 
-def lambert(normal_w: torch.Tensor) -> torch.Tensor:
-    """(S,) shading factor of world normals (S,3) under the fixed sun: ambient 0.55 plus 0.45 diffuse."""
-    return 0.55 + 0.45 * (normal_w @ LIGHT.to(normal_w.device)).clamp_min(0)
+def lambert(normal_w: torch.Tensor, sunlit: torch.Tensor | None = None) -> torch.Tensor:
+    """(S,) shading factor of world normals (S,3) under the fixed sun: ambient 0.55 plus 0.45 diffuse, the diffuse
+    term only where ``sunlit`` (S,) bool (None: everywhere, no cast shadows)."""
+    diffuse = (normal_w @ LIGHT.to(normal_w.device)).clamp_min(0)
+    if sunlit is not None:
+        diffuse = diffuse * sunlit
+    return 0.55 + 0.45 * diffuse
 
 
-def shade_view(scene: Scene, view: View) -> torch.Tensor:
+def shade_view(scene: Scene, view: View, shadows: bool = False) -> torch.Tensor:
     """(3,H,W) colour image of one cast view; see :func:`shade_views`."""
-    return shade_views(scene, [view])[0]
+    return shade_views(scene, [view], shadows)[0]
+
+
+def _sunlit(scene: Scene, views: list[View], sel: torch.Tensor, n: int) -> torch.Tensor:
+    """(S,) bool: the hits ``sel`` (flat indices into the stacked views of ``n`` pixels each) not in a cast shadow."""
+    lit = torch.ones(len(sel), dtype=torch.bool, device=sel.device)
+    which = torch.div(sel, n, rounding_mode="floor")
+    for i, view in enumerate(views):
+        rows = _pick(which == i)
+        if len(rows):
+            lit[rows] = ~sun_shadowed(scene, view, take(sel, rows) - i * n, LIGHT)
+    return lit
 
 
 def _pick(mask: torch.Tensor) -> torch.Tensor:
     return torch.nonzero(mask).squeeze(1)
 
 
-def shade_views(scene: Scene, views: list[View]) -> list[torch.Tensor]:
+def shade_views(scene: Scene, views: list[View], shadows: bool = False) -> list[torch.Tensor]:
     """Colour images (3,H,W) in [0,1] of cast views of the same size and intrinsics, shaded in one pass.
 
     Args:
         scene: the :class:`~dfvo.synthetic.scene.Scene` that was cast.
         views: cast views (depth, ids, pose, world rays), e.g. the left and right camera of a frame.
+        shadows: cast the objects' shadows (:func:`~dfvo.synthetic.render.sun_shadowed`): a point that does not
+            see the sun keeps the ambient light alone, as a face turned from it does. Off: every point sees it.
 
     Returns:
         One (3,H,W) float32 image per view, on the views' device.
@@ -100,17 +118,22 @@ def shade_views(scene: Scene, views: list[View]) -> list[torch.Tensor]:
         cos = (d[:, 1].abs() / dn).clamp_min(0.08)
         fp = t * dn / (fx * cos)
         col = scene.ground(x, z, fp)
-        img.index_copy_(0, sel, col * lambert(torch.tensor([[0.0, -1.0, 0.0]], device=dev)))
+        lit = _sunlit(scene, views, sel, n) if shadows else None
+        up = torch.tensor([[0.0, -1.0, 0.0]], device=dev)
+        img.index_copy_(0, sel, col * lambert(up, lit)[:, None] if shadows else col * lambert(up))
     sel = _pick(ids > 0)
     if len(sel):
-        img.index_copy_(0, sel, _shade_objects(scene, views, sel, ids, depth, dirs, view_of, fx))
+        lit = _sunlit(scene, views, sel, n) if shadows else None
+        img.index_copy_(0, sel, _shade_objects(scene, views, sel, ids, depth, dirs, view_of, fx, lit))
     img = img.clamp(0, 1)
     return [img[i * n:(i + 1) * n].T.reshape(3, H, W) for i in range(len(views))]
 
 
 def _shade_objects(scene: Scene, views: list[View], sel: torch.Tensor, ids: torch.Tensor, depth: torch.Tensor,
-                   dirs: torch.Tensor, view_of: torch.Tensor, fx: float) -> torch.Tensor:
-    """(S,3) lit colours of the object hits ``sel`` (flat indices into the stacked views)."""
+                   dirs: torch.Tensor, view_of: torch.Tensor, fx: float, sunlit: torch.Tensor | None = None
+                   ) -> torch.Tensor:
+    """(S,3) lit colours of the object hits ``sel`` (flat indices into the stacked views); ``sunlit`` (S,) bool: which
+    see the sun (None: all)."""
     dev = ids.device
     m = take(ids, sel) - 1
     vs = take(view_of, sel)
@@ -192,4 +215,4 @@ def _shade_objects(scene: Scene, views: list[View], sel: torch.Tensor, ids: torc
             if len(k):
                 out.index_copy_(0, k, fn(take(u, k), take(v, k), take(se, k), take(fe, k)))
         col.index_copy_(0, ell, out)
-    return col * lambert(n_w)[:, None]
+    return col * lambert(n_w, sunlit)[:, None]

@@ -59,13 +59,15 @@ class SyntheticWorld:
             the camera brakes for corners; the default worlds (speed and turn_rate None) are unchanged.
         turn_rate: street corners' yaw rate in degrees per frame, or a (lo, hi) range (default
             ``TURN_RATE_DEG`` = 5-10 once ``speed`` is set); ignored by "highway" (gentle curves).
+        shadows: the objects cast shadows under the world's sun (:func:`~dfvo.synthetic.render.sun_shadowed`):
+            shadowed road and facades, with the same depth and flow (default off: the worlds as they always were).
         device: where rendering runs and returned tensors live ("cpu", "cuda", ...; default CPU).
     """
 
     def __init__(self, seed: int = 0, num_frames: int = 100, height: int = 192, width: int = 640,
                  baseline: float = 0.54, exposure_change: bool = False, noise_std: float = 0.0,
                  scenario: str = "drive", speed: float | tuple[float, float] | None = None,
-                 turn_rate: float | tuple[float, float] | None = None,
+                 turn_rate: float | tuple[float, float] | None = None, shadows: bool = False,
                  device: str | torch.device | None = None) -> None:
         if height < 8 or width < 8:
             raise ValueError(f"SyntheticWorld: height={height}, width={width}; expected both >= 8 pixels")
@@ -83,6 +85,7 @@ class SyntheticWorld:
         self.exposure_change = bool(exposure_change)
         self.noise_std = float(noise_std)
         self.scenario = scenario
+        self.shadows = bool(shadows)
         self.device = torch.device(device if device is not None else "cpu")
         if scenario == "highway":
             self._traj = make_highway_trajectory(int(num_frames), self.seed, speed)
@@ -177,7 +180,7 @@ class SyntheticWorld:
         index = self._check_index(index)
         todo = [c for c in cams if (index, c) not in self._images]
         if todo:
-            shaded = shade_views(self._scene, [self.view(index, c) for c in todo])
+            shaded = shade_views(self._scene, [self.view(index, c) for c in todo], self.shadows)
             for cam, img in zip(todo, shaded, strict=True):
                 g = self._gain(index)
                 if g != 1.0:

@@ -431,6 +431,9 @@ class TrainConfig:
         resume: ``auto`` continues the run ``runs_dir/name`` from its newest checkpoint (exactly, as ``ckpt_path``)
             or starts it; ``never`` starts a new run and refuses a folder that already holds one
             (:mod:`dfvo.training.resume`).
+        continue_from: a weights export of this depth run (``RUN/weights.safetensors``: its step and epoch in the
+            metadata) to continue it from when its checkpoints are lost, e.g. on a new machine: the epochs to go,
+            the same rate schedule, the pose network and optimiser anew (:mod:`dfvo.training.continuation`).
         threads: torch threads (0: torch's default). verbose: full tracebacks for expected errors.
     """
 
@@ -442,6 +445,7 @@ class TrainConfig:
     seed: int = 0
     ckpt_path: str | None = None
     resume: str = "never"
+    continue_from: str | None = None
     threads: int = 0
     verbose: bool = False
 

@@ -138,6 +138,8 @@ class DFVODataModule(L.LightningDataModule):
                 value = getattr(d, key)
                 if value is not None:
                     world[key] = value[0] if len(value) == 1 else tuple(value)
+            if d.shadows:
+                world["shadows"] = True
         if cls is SyntheticSequenceDataset:  # (validation worlds of the other datasets: small, kept)
             world["keep_frames"] = bool(getattr(d, "keep_frames", True))
         return cls(list(seeds), num_frames, d.height, d.width, frame_skips=frame_skips, **world)

@@ -92,6 +92,9 @@ class DepthPoseModule(L.LightningModule):
         self.pose_net = PoseNet() if self.temporal else None
         self.augment = m.augment
         self.augment_seed = int(cfg.data.seed) if "data" in cfg else 0
+        # the steps and whole epochs trained before this run when it continues another from its weights
+        # (continue_from, dfvo.training.continuation): the rate schedule and the exports count the whole run
+        self.steps_before, self.epochs_before = 0, 0
         if m.init_from:
             self._init_weights_from(str(m.init_from))
         self.save_hyperparameters({"cfg": recorded_config(cfg)})
@@ -366,6 +369,8 @@ class DepthPoseModule(L.LightningModule):
         optimizer = adam(params, self.lr, self.device,
                          clipped=self._trainer is not None and self._trainer.gradient_clip_val is not None)
         total = max(int(self.trainer.estimated_stepping_batches), 1) if self._trainer is not None else 1
-        drop_at = int(self.lr_drop_fraction * total)
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0 if step < drop_at else 0.1)
+        # the whole run's step at which the rate drops (a continued run's steps follow self.steps_before others)
+        before = self.steps_before
+        drop_at = int(self.lr_drop_fraction * (total + before))
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 1.0 if step + before < drop_at else 0.1)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}

@@ -14,7 +14,7 @@ key                   value (strings)
 ``width_multiplier``  the DepthNet's channel multiplier (depth; ``model.width_multiplier``)
 ``height``            the input size the network was trained at (inference resizes to it)
 ``width``
-``global_step``       the training step of the weights; ``epoch`` its epoch
+``global_step``       the training step of the weights; ``epoch`` its epoch (of the whole run: ``continue_from``)
 ``source``            the checkpoint the weights are (or were written beside)
 ``dfvo_model``        the run's model identity ``task:name`` (when known)
 ====================  =======================================================================================
@@ -35,7 +35,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from dfvo.io.checkpoint import MODEL_IDENTITY_KEY, save_weights
 
-__all__ = ["WEIGHTS_NAME", "PREVIOUS_NAME", "weights_metadata", "export_weights", "durable_replace",
+__all__ = ["WEIGHTS_NAME", "PREVIOUS_NAME", "weights_metadata", "run_position", "export_weights", "durable_replace",
            "LastCheckpoint", "KeepWeights"]
 
 WEIGHTS_NAME = "weights.safetensors"
@@ -51,6 +51,14 @@ def weights_metadata(network_meta: dict[str, str], height: int | None, width: in
                              "source": source, MODEL_IDENTITY_KEY: identity}
     meta.update({k: str(v) for k, v in extra.items() if v is not None})
     return meta
+
+
+def run_position(trainer: L.Trainer) -> tuple[int, int]:
+    """The step and epoch of the whole run: the trainer's, plus the module's ``steps_before`` / ``epochs_before``
+    when the run continues another from its weights (``continue_from``, :mod:`dfvo.training.continuation`)."""
+    module = trainer.lightning_module
+    return (int(trainer.global_step) + int(getattr(module, "steps_before", 0)),
+            int(trainer.current_epoch) + int(getattr(module, "epochs_before", 0)))
 
 
 def export_weights(module: L.LightningModule, path: str | Path, metadata: dict[str, str],
@@ -162,8 +170,9 @@ class LastCheckpoint(ModelCheckpoint):
         trainer.strategy.barrier("dfvo_last_checkpoint")
         self._last_checkpoint_saved = filepath
         if self.weights_path is not None and trainer.is_global_zero:
-            meta = weights_metadata({}, *self.size, global_step=trainer.global_step, epoch=trainer.current_epoch,
-                                    source=filepath, identity=self.identity)
+            step, epoch = run_position(trainer)
+            meta = weights_metadata({}, *self.size, global_step=step, epoch=epoch, source=filepath,
+                                    identity=self.identity)
             export_weights(trainer.lightning_module, self.weights_path, meta)
 
 
@@ -182,8 +191,8 @@ class KeepWeights(L.Callback):
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
-        step = int(trainer.global_step)
+        step, epoch = run_position(trainer)
         if step % self.every or not trainer.is_global_zero:
             return
-        meta = weights_metadata({}, *self.size, global_step=step, epoch=trainer.current_epoch, identity=self.identity)
+        meta = weights_metadata({}, *self.size, global_step=step, epoch=epoch, identity=self.identity)
         export_weights(pl_module, self.run_dir / f"weights_step{step}.safetensors", meta)

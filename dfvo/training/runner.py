@@ -40,6 +40,7 @@ from dfvo.training.callbacks import (
     ValidateAtStop,
 )
 from dfvo.training.config import FlowMixTrainDataConfig, TrainerConfig, data_config, model_config, typed
+from dfvo.training.continuation import continued_config, read_continuation
 from dfvo.training.datamodule import DFVODataModule
 from dfvo.training.export import WEIGHTS_NAME, KeepWeights, LastCheckpoint
 from dfvo.training.flow_data import FlowMixDataModule
@@ -209,10 +210,19 @@ def _fit(cfg: DictConfig, stopper: StopOnSignal) -> tuple[L.Trainer, L.Lightning
     run_dir = run_folder(cfg)
     start = resume_point(run_dir, model_identity(cfg), str(cfg.get("resume", "never")), cfg.ckpt_path)
     ckpt_path = str(start.path) if start is not None else None
+    continuation = read_continuation(cfg, model_identity(cfg))
+    if continuation is not None:  # a run whose checkpoints were lost, continued from its weights
+        cfg = continued_config(cfg, continuation)
+        log.info("continue_from=%s: the run continues after step %d (epoch %d): %d epochs to go%s",
+                 continuation.path, continuation.steps_before, continuation.epochs_before, cfg.trainer.max_epochs,
+                 f", resumed from {ckpt_path}" if ckpt_path else "; depth network from these weights, the pose "
+                 "network and the optimiser anew")
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / FINISHED_NAME).unlink(missing_ok=True)  # written again when this run ends normally
     datamodule = build_datamodule(cfg)  # checks the data fits the model (e.g. supervised flow needs true flow)
     module = build_module(cfg)
+    if continuation is not None:
+        module.steps_before, module.epochs_before = continuation.steps_before, continuation.epochs_before
     trainer = build_trainer(cfg, run_dir, has_validation=datamodule.has_validation,
                             one_epoch_run=getattr(datamodule, "one_epoch_run", False), stopper=stopper)
     if trainer.is_global_zero:

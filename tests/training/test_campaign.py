@@ -92,3 +92,34 @@ def test_snapshot_and_restore_carry_the_queue_to_a_new_machine(tmp_path: Path) -
     log = (new / "campaign.log").read_text()
     assert "second: restored the committed state" in log
     assert (new / "second" / "checkpoints" / "last.ckpt").read_bytes() == b"not a real checkpoint"
+
+
+def test_a_depth_run_committed_as_weights_continues_on_a_new_machine(tmp_path: Path) -> None:
+    """A depth run whose last.ckpt is too large to commit is snapshotted as its weights; on a new machine the queue
+    copies them into the run folder and runs train.py with continue_from, which trains the epochs to go."""
+    depth = ("model=depth_mono_sc data=synthetic data.num_frames=5 data.seeds=[0] data.height=64 data.width=128 "
+             "data.batch_size=1 data.max_train_samples=2 data.val_num_frames=3 trainer.max_epochs=4 "
+             "model.monitor=null model.log_images_every=0 trainer.logger=false trainer.precision=32-true")
+    runs, queue, snap = tmp_path / "runs", tmp_path / "queue", tmp_path / "campaign"
+    env = {"CAMPAIGN_SNAPSHOT": str(snap)}
+    part = tmp_path / "part_queue"
+    part.write_text(f"deep {depth} trainer.max_steps=3\n")
+    assert _campaign(runs, part, "run").returncode == 0
+    (runs / "deep" / "finished.json").unlink()  # as if stopped at step 3 (a SIGTERM leaves no finished.json)
+    with open(runs / "deep" / "checkpoints" / "last.ckpt", "r+b") as f:
+        f.truncate(60_000_000)  # a depth run's checkpoint: too large to commit (sparse: no disk used)
+    queue.write_text(f"deep {depth}\n")
+    res = _campaign(runs, queue, "snapshot", extra_env=env)
+    assert "deep: weights.safetensors -> " in res.stdout and "(last.ckpt is 60 MB)" in res.stdout
+    assert sorted(p.name for p in (snap / "deep").iterdir()) == ["weights.safetensors"]
+
+    new = tmp_path / "new_machine"
+    res = _campaign(new, queue, "run", extra_env=env)
+    assert res.returncode == 0, res.stderr
+    log = (new / "campaign.log").read_text()
+    assert "deep: no checkpoint here: continues from the committed weights" in log
+    assert f"continue_from={new / 'deep' / 'continue_from.safetensors'}" in log
+    assert "the run continues after step 3 (epoch 1): 3 epochs to go" in log and "deep: finished" in log
+    committed = (snap / "deep" / "weights.safetensors").read_bytes()
+    assert (new / "deep" / "continue_from.safetensors").read_bytes() == committed
+    assert '"step": 6' in (new / "deep" / "finished.json").read_text()  # epochs 1-3: 2 steps each
