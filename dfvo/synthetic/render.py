@@ -130,7 +130,7 @@ def _slab(o: torch.Tensor, d: tuple[torch.Tensor, ...], hf: torch.Tensor) -> tor
         lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
         t_near = lo if t_near is None else torch.maximum(t_near, lo)
         t_far = hi if t_far is None else torch.minimum(t_far, hi)
-    hit = (t_far >= t_near) & (t_far > NEAR)
+    hit = (t_far >= t_near) & (t_near > NEAR)
     return torch.where(hit, t_near, torch.full_like(t_near, float("inf")))
 
 

@@ -119,8 +119,7 @@ def shade_views(scene: Scene, views: list[View], shadows: bool = False) -> list[
         fp = t * dn / (fx * cos)
         col = scene.ground(x, z, fp)
         lit = _sunlit(scene, views, sel, n) if shadows else None
-        up = torch.tensor([[0.0, -1.0, 0.0]], device=dev)
-        img.index_copy_(0, sel, col * lambert(up, lit)[:, None] if shadows else col * lambert(up))
+        img.index_copy_(0, sel, col * lambert(torch.tensor([[0.0, -1.0, 0.0]], device=dev), lit)[:, None])
     sel = _pick(ids > 0)
     if len(sel):
         lit = _sunlit(scene, views, sel, n) if shadows else None
