@@ -17,6 +17,7 @@ Convention:
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,8 @@ from dfvo.io.checkpoint import CheckpointError, load_weights, read_state_dict
 from dfvo.models.depth_net import DepthNet, network_width
 from dfvo.models.flow_net import FlowNet
 from dfvo.sources.config import DepthSourceConfig, RuntimeConfig, RuntimeKind
+
+log = logging.getLogger(__name__)
 
 __all__ = ["blend_flipped_inverse_depth", "NetworkFlow", "NetworkDepth", "resolve_input_size", "resize_images",
            "resize_flow"]
@@ -66,6 +69,7 @@ class _Runtime:
     def __init__(self, config: RuntimeConfig | None, what: str, device: torch.device) -> None:
         self.config = config or RuntimeConfig()
         self.kind = RuntimeKind(self.config.kind)
+        self.auto = self.kind == RuntimeKind.auto  # a default: falls back to PyTorch where it cannot export (engine)
         self.reason = f"{what}.runtime.kind={self.kind.value}"
         if self.kind == RuntimeKind.auto:
             from dfvo.sources.runtime.engines import resolve_auto_runtime
@@ -88,14 +92,28 @@ class _Runtime:
 
             check_precision(self.kind.value, self.config.precision, f"{what}.runtime.precision")
 
-    def engine(self, spec: Any, model: torch.nn.Module) -> Any:
+    def engine(self, spec: Any, model: torch.nn.Module) -> Any | None:
         """The engine of ``spec`` (an :class:`dfvo.sources.runtime.export.ExportSpec`), exported and built on first
-        use."""
+        use; None where PyTorch runs the network (``torch``, or ``auto`` after an export it could not write).
+
+        ``kind=auto`` is a default, so a cache folder it cannot write (read-only home, a file in its place) makes it
+        fall back to PyTorch fp32 with one warning and the reason in ``reason``; a runtime asked for by name is
+        refused instead (one line naming ``runtime.cache_dir``)."""
+        if self.kind == RuntimeKind.torch:
+            return None
         if spec.input_size not in self.engines:
             from dfvo.sources.runtime.engines import build_engine
             from dfvo.sources.runtime.export import exported_model
 
-            path = exported_model(spec, lambda: model, self.config.cache_dir, f"{self.what}.runtime.cache_dir")
+            try:
+                path = exported_model(spec, lambda: model, self.config.cache_dir, f"{self.what}.runtime.cache_dir")
+            except OSError as err:
+                if not self.auto:
+                    raise
+                log.warning("%s.runtime.kind=auto: %s; running the network on PyTorch fp32", self.what, err)
+                self.kind, self.name = RuntimeKind.torch, RuntimeKind.torch.value
+                self.reason = f"{self.reason}; the export failed ({err}): PyTorch fp32"
+                return None
             self.engines[spec.input_size] = build_engine(self.kind.value, path, precision=self.config.precision)
         return self.engines[spec.input_size]
 
@@ -129,7 +147,7 @@ class NetworkFlow:
         self.input_size = resolve_input_size(input_size, meta, "flow")
         self._checked_output = False
         self._runtime = _Runtime(runtime, "flow", self.device)
-        if self._runtime.kind != RuntimeKind.torch and self.input_size is not None:
+        if self.input_size is not None:
             self._runtime.engine(self.export_spec(self.input_size), self.model)  # export now, not mid-run
 
     @property
@@ -150,9 +168,10 @@ class NetworkFlow:
 
     def forward_backward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``FlowNet.forward_backward`` of images (B,3,h,w) already at the network's input size, by the runtime."""
-        if self._runtime.kind == RuntimeKind.torch:
+        engine = self._runtime.engine(self.export_spec(tuple(img1.shape[-2:])), self.model)
+        if engine is None:
             return self.model.forward_backward(img1, img2)
-        fwd, bwd = self._runtime.engine(self.export_spec(tuple(img1.shape[-2:])), self.model)(img1, img2)
+        fwd, bwd = engine(img1, img2)
         return fwd.to(img1.device), bwd.to(img1.device)
 
     def _guess_variant(self, device: str) -> str | None:
@@ -244,7 +263,7 @@ class NetworkDepth:
         self.input_size = resolve_input_size(input_size, meta, "depth")
         self.flip_average = bool(flip_average)
         self._runtime = _Runtime(runtime, "depth", self.device)
-        if self._runtime.kind != RuntimeKind.torch and self.input_size is not None:
+        if self.input_size is not None:
             self._runtime.engine(self.export_spec(self.network_size(*self.input_size)), self.model)
 
     @property
@@ -272,10 +291,10 @@ class NetworkDepth:
 
     def network_depth(self, inputs: torch.Tensor) -> torch.Tensor:
         """``DepthNet.depth`` (B,1,h,w) of images (B,3,h,w) already at the network's input size, by the runtime."""
-        if self._runtime.kind == RuntimeKind.torch:
+        engine = self._runtime.engine(self.export_spec(tuple(inputs.shape[-2:])), self.model)
+        if engine is None:
             return self.model.depth(inputs)
-        return self._runtime.engine(self.export_spec(tuple(inputs.shape[-2:])), self.model)(inputs)[0].to(
-            inputs.device)
+        return engine(inputs)[0].to(inputs.device)
 
     def __call__(self, images: torch.Tensor, indices: list[int] | None = None) -> torch.Tensor:
         """Depth (B,1,H,W) in metres of images (B,3,H,W), computed at the network's input size (multiples of 32)

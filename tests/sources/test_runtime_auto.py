@@ -50,3 +50,40 @@ def test_a_source_with_auto_reports_what_it_runs_and_why(monkeypatch: pytest.Mon
     src = NetworkDepth(Path(DEPTH), runtime=RuntimeConfig(kind="auto"))
     assert src.runtime == "torch"
     assert src.runtime_reason.startswith("depth.runtime.kind=auto: this CPU has no bf16 instructions")
+
+
+def test_infer_runs_the_depth_network_by_auto_and_the_flow_network_on_pytorch_by_default() -> None:
+    """infer.py's default (runtime/default.yaml): depth.runtime.kind=auto, flow.runtime.kind=torch; runtime=auto and
+    runtime=torch still set both."""
+    from dfvo.inference.config import compose_infer_config
+
+    kinds = {}
+    for overrides in ([], ["runtime=auto"], ["runtime=torch"]):
+        cfg = compose_infer_config(overrides)
+        kinds[" ".join(overrides)] = (str(cfg.flow.runtime.kind), str(cfg.depth.runtime.kind))
+    assert kinds == {"": ("torch", "auto"), "runtime=auto": ("auto", "auto"), "runtime=torch": ("torch", "torch")}
+
+
+@pytest.mark.skipif(not DEPTH.is_file(), reason="no shipped depth checkpoint")
+def test_auto_falls_back_to_pytorch_where_its_export_cannot_be_written(monkeypatch: pytest.MonkeyPatch,
+                                                                       tmp_path: Path) -> None:
+    """A default must run: ``auto`` whose export folder cannot be made (a file stands in its place) runs PyTorch and
+    says why, with eager's depth to the bit; the same folder with ``openvino`` asked for by name is refused in one
+    line naming the setting."""
+    pytest.importorskip("openvino", reason="the 'fast' extra (pip install -e '.[fast]')")
+    import torch
+
+    from dfvo.sources.networks import NetworkDepth
+
+    monkeypatch.setattr(engines, "resolve_auto_runtime", lambda device="cpu": ("openvino", "fp32", "stubbed"))
+    blocked = tmp_path / "not_a_folder"
+    blocked.write_text("a file where the cache folder should be")
+    src = NetworkDepth(Path(DEPTH), runtime=RuntimeConfig(kind="auto", cache_dir=str(blocked)))
+    assert src.runtime == "torch"
+    assert src.runtime_reason.startswith("depth.runtime.kind=auto: stubbed; the export failed (depth.runtime."
+                                         f"cache_dir={blocked}: cannot write")
+    images = torch.rand(2, 3, 96, 320, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(src(images), NetworkDepth(Path(DEPTH))(images))
+    with pytest.raises(OSError, match=r"^depth\.runtime\.cache_dir=.*cannot write the exported depth network") as err:
+        NetworkDepth(Path(DEPTH), runtime=RuntimeConfig(kind="openvino", cache_dir=str(blocked)))
+    assert "\n" not in str(err.value)
