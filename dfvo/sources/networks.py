@@ -147,7 +147,7 @@ class NetworkFlow:
         self.input_size = resolve_input_size(input_size, meta, "flow")
         self._checked_output = False
         self._runtime = _Runtime(runtime, "flow", self.device)
-        if self.input_size is not None:
+        if self._runtime.kind != RuntimeKind.torch and self.input_size is not None:
             self._runtime.engine(self.export_spec(self.input_size), self.model)  # export now, not mid-run
 
     @property
@@ -168,8 +168,9 @@ class NetworkFlow:
 
     def forward_backward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``FlowNet.forward_backward`` of images (B,3,h,w) already at the network's input size, by the runtime."""
-        engine = self._runtime.engine(self.export_spec(tuple(img1.shape[-2:])), self.model)
-        if engine is None:
+        engine = (None if self._runtime.kind == RuntimeKind.torch
+                  else self._runtime.engine(self.export_spec(tuple(img1.shape[-2:])), self.model))
+        if engine is None:  # PyTorch: asked for, or auto's fallback
             return self.model.forward_backward(img1, img2)
         fwd, bwd = engine(img1, img2)
         return fwd.to(img1.device), bwd.to(img1.device)
@@ -263,7 +264,7 @@ class NetworkDepth:
         self.input_size = resolve_input_size(input_size, meta, "depth")
         self.flip_average = bool(flip_average)
         self._runtime = _Runtime(runtime, "depth", self.device)
-        if self.input_size is not None:
+        if self._runtime.kind != RuntimeKind.torch and self.input_size is not None:
             self._runtime.engine(self.export_spec(self.network_size(*self.input_size)), self.model)
 
     @property
@@ -291,8 +292,9 @@ class NetworkDepth:
 
     def network_depth(self, inputs: torch.Tensor) -> torch.Tensor:
         """``DepthNet.depth`` (B,1,h,w) of images (B,3,h,w) already at the network's input size, by the runtime."""
-        engine = self._runtime.engine(self.export_spec(tuple(inputs.shape[-2:])), self.model)
-        if engine is None:
+        engine = (None if self._runtime.kind == RuntimeKind.torch
+                  else self._runtime.engine(self.export_spec(tuple(inputs.shape[-2:])), self.model))
+        if engine is None:  # PyTorch: asked for, or auto's fallback
             return self.model.depth(inputs)
         return engine(inputs)[0].to(inputs.device)
 
