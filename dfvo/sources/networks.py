@@ -94,13 +94,11 @@ class _Runtime:
 
     def engine(self, spec: Any, model: torch.nn.Module) -> Any | None:
         """The engine of ``spec`` (an :class:`dfvo.sources.runtime.export.ExportSpec`), exported and built on first
-        use; None where PyTorch runs the network (``torch``, or ``auto`` after an export it could not write).
+        use (called only while ``kind`` is not ``torch``); None when ``auto`` could not write the export.
 
         ``kind=auto`` is a default, so a cache folder it cannot write (read-only home, a file in its place) makes it
-        fall back to PyTorch fp32 with one warning and the reason in ``reason``; a runtime asked for by name is
-        refused instead (one line naming ``runtime.cache_dir``)."""
-        if self.kind == RuntimeKind.torch:
-            return None
+        fall back to PyTorch fp32 (``kind`` becomes ``torch``) with one warning and the reason in ``reason``; a
+        runtime asked for by name is refused instead (one line naming ``runtime.cache_dir``)."""
         if spec.input_size not in self.engines:
             from dfvo.sources.runtime.engines import build_engine
             from dfvo.sources.runtime.export import exported_model
