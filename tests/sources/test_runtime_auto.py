@@ -52,16 +52,17 @@ def test_a_source_with_auto_reports_what_it_runs_and_why(monkeypatch: pytest.Mon
     assert src.runtime_reason.startswith("depth.runtime.kind=auto: this CPU has no bf16 instructions")
 
 
-def test_infer_runs_the_depth_network_by_auto_and_the_flow_network_on_pytorch_by_default() -> None:
-    """infer.py's default (runtime/default.yaml): depth.runtime.kind=auto, flow.runtime.kind=torch; runtime=auto and
-    runtime=torch still set both."""
+def test_the_runtime_groups_set_each_network() -> None:
+    """infer.py's default runs both networks on PyTorch; runtime=depth_auto puts the depth network alone on auto
+    (runtime/depth_auto.yaml), runtime=auto both."""
     from dfvo.inference.config import compose_infer_config
 
     kinds = {}
-    for overrides in ([], ["runtime=auto"], ["runtime=torch"]):
+    for overrides in ([], ["runtime=depth_auto"], ["runtime=auto"], ["runtime=torch"]):
         cfg = compose_infer_config(overrides)
         kinds[" ".join(overrides)] = (str(cfg.flow.runtime.kind), str(cfg.depth.runtime.kind))
-    assert kinds == {"": ("torch", "auto"), "runtime=auto": ("auto", "auto"), "runtime=torch": ("torch", "torch")}
+    assert kinds == {"": ("torch", "torch"), "runtime=depth_auto": ("torch", "auto"), "runtime=auto": ("auto", "auto"),
+                     "runtime=torch": ("torch", "torch")}
 
 
 @pytest.mark.skipif(not DEPTH.is_file(), reason="no shipped depth checkpoint")
