@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.losses.photometric import ssim_l1_error
+from dfvo.losses.photometric import ssim_l1_error, ssim_moments
 from dfvo.losses.smoothness import edge_aware_smoothness
 from dfvo.matching.consistency import inconsistency_at
 from dfvo.matching.flow_warp import flow_magnitude, warp_by_flow
@@ -113,8 +113,9 @@ def _occlusion_from_warp(flow_fwd: torch.Tensor, bwd_at: torch.Tensor, inside: t
 
 
 def _direction_terms(img_i: torch.Tensor, img_j: torch.Tensor, flow_ij: torch.Tensor, flow_ji: torch.Tensor,
-                     alpha: float, occlusion: bool, occ_alpha1: float,
-                     occ_alpha2: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                     alpha: float, occlusion: bool, occ_alpha1: float, occ_alpha2: float,
+                     moments_i: tuple[torch.Tensor, torch.Tensor] | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     # one warp per direction: image j and the backward flow sampled together at x + F_ij(x) (grid_sample treats
     # channels independently, so this equals two warps; its gradient w.r.t. the flow is their sum)
     both, inside = warp_by_flow(torch.cat([img_j, flow_ji.to(img_j.dtype)], 1), flow_ij)
@@ -123,7 +124,7 @@ def _direction_terms(img_i: torch.Tensor, img_j: torch.Tensor, flow_ij: torch.Te
         visible, _ = _occlusion_from_warp(flow_ij.detach(), bwd_at.detach(), inside, occ_alpha1, occ_alpha2)
     else:
         visible = inside
-    photo = _masked_mean(ssim_l1_error(img_i, warped, alpha=alpha), visible)
+    photo = _masked_mean(ssim_l1_error(img_i, warped, alpha=alpha, target_moments=moments_i), visible)
     # ||F|| in pixels, not mean-normalised (a still scene has ||F|| ~ 0; the paper regularises ||F|| itself).
     smooth = edge_aware_smoothness(flow_magnitude(flow_ij), img_i, normalise=False)
     # sqrt with a small epsilon: same value as the consistency module's norm, finite gradient at 0.
@@ -165,12 +166,13 @@ def self_supervised_flow_loss(img1: torch.Tensor, img2: torch.Tensor,
                  f"self_supervised_flow_loss: {len(weights)} weights for {len(flows_fwd)} scales")
     photo_t = smooth_t = fc_t = img1.new_zeros(())
     visible_fraction = img1.new_zeros(())
+    moments1, moments2 = ssim_moments(img1), ssim_moments(img2)  # each image's SSIM moments serve every scale
     for k, (w, ff, fb) in enumerate(zip(weights, flows_fwd, flows_bwd)):
         KORNIA_CHECK(ff.shape[-2:] == img1.shape[-2:],
                      f"self_supervised_flow_loss: scale {k + 1} flow {tuple(ff.shape)} is not at image size "
                      f"{tuple(img1.shape[-2:])}; upsample it first (FlowNet all_scales=True does)")
-        p1, s1, c1, v1 = _direction_terms(img1, img2, ff, fb, alpha, occlusion, occ_alpha1, occ_alpha2)
-        p2, s2, c2, _ = _direction_terms(img2, img1, fb, ff, alpha, occlusion, occ_alpha1, occ_alpha2)
+        p1, s1, c1, v1 = _direction_terms(img1, img2, ff, fb, alpha, occlusion, occ_alpha1, occ_alpha2, moments1)
+        p2, s2, c2, _ = _direction_terms(img2, img1, fb, ff, alpha, occlusion, occ_alpha1, occ_alpha2, moments2)
         photo_t = photo_t + w * (p1 + p2) / 2
         smooth_t = smooth_t + w * (s1 + s2) / 2
         fc_t = fc_t + w * (c1 + c2) / 2

@@ -42,7 +42,7 @@ from dfvo.geometry.two_view import normalise_points
 from dfvo.io.checkpoint import find_checkpoint, load_weights, read_state_dict
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.depth_supervision import log_depth_l1
-from dfvo.losses.photometric import INVALID_ERROR, min_over_views, ssim_l1_error
+from dfvo.losses.photometric import INVALID_ERROR, min_over_views, ssim_l1_error, ssim_moments
 from dfvo.losses.reprojection import reproject
 from dfvo.losses.road_height import road_height_log_l1
 from dfvo.losses.smoothness import edge_aware_smoothness
@@ -215,9 +215,11 @@ class DepthPoseModule(L.LightningModule):
         n = len(sources)
         srcs = torch.cat([src for _, src, _ in sources])
         T_all, K_all, image_all = torch.cat([T for _, _, T in sources]), K.repeat(n, 1, 1), image.repeat(n, 1, 1, 1)
+        # the target's SSIM moments serve every view and scale (the same values as computing them in each call)
+        target_moments = tuple(m.repeat(n, 1, 1, 1) for m in ssim_moments(image))
         identity = []
         if self.automask:
-            identity = list((ssim_l1_error(image_all, srcs, self.alpha) + 1e-5).split(B))
+            identity = list((ssim_l1_error(image_all, srcs, self.alpha, target_moments) + 1e-5).split(B))
         hint = self._hint_reprojection(batch, sources) if self.w_depth_hints > 0 else None
         road = None
         if self.w_camera_height > 0 and "camera_height" in batch:
@@ -231,7 +233,7 @@ class DepthPoseModule(L.LightningModule):
             disp_full = F.interpolate(disps[s], size=(H, W), mode="bilinear", align_corners=False)
             depth = disp_to_depth(disp_full, self.min_depth, self.max_depth)
             rep = reproject(srcs, depth.repeat(n, 1, 1, 1), T_all, K_all)
-            errors = [*identity, *ssim_l1_error(image_all, rep.warped, self.alpha).split(B)]
+            errors = [*identity, *ssim_l1_error(image_all, rep.warped, self.alpha, target_moments).split(B)]
             valids = [None] * len(identity) + list(rep.valid.split(B))
             diffs, dvalids = [], []
             for k, (name, _, _) in enumerate(sources):

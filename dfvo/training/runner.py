@@ -31,6 +31,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from dfvo.io.checkpoint import load_training_checkpoint
+from dfvo.training.allocator import keep_freed_memory
 from dfvo.training.callbacks import (
     ChannelsLast,
     ConsoleMetrics,
@@ -206,6 +207,8 @@ def run_folder(cfg: DictConfig) -> Path:
 def _fit(cfg: DictConfig, stopper: StopOnSignal) -> tuple[L.Trainer, L.LightningModule, Path]:
     if cfg.threads > 0:
         torch.set_num_threads(int(cfg.threads))
+    if cfg.trainer.keep_freed_memory:
+        log.info(keep_freed_memory()[1])
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     run_dir = run_folder(cfg)
     start = resume_point(run_dir, model_identity(cfg), str(cfg.get("resume", "never")), cfg.ckpt_path)

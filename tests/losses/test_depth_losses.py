@@ -140,16 +140,55 @@ def test_consistency_zero_for_true_depths(world_frame: dict) -> None:
 
 
 def test_ssim_map_is_kornias_ssim() -> None:
-    """The stacked-moment SSIM equals kornia.metrics.ssim (3x3 Gaussian window, reflect padding) to float rounding,
-    on random images and on an image against itself (1 everywhere), and its gradient is kornia's."""
+    """The stacked-moment SSIM equals kornia.metrics.ssim (3x3 Gaussian window, reflect padding) computed in float64
+    to float32 rounding (kornia's own float32 values are 3e-6 from it), on random images and on an image against
+    itself (1 everywhere), and so does its gradient."""
     from kornia.metrics import ssim
 
     from dfvo.losses.photometric import ssim_map
 
     g = torch.Generator().manual_seed(1)
     x, y = torch.rand(2, 3, 17, 23, generator=g), torch.rand(2, 3, 17, 23, generator=g, requires_grad=True)
-    ours, ref = ssim_map(x, y), ssim(x, y, 3, max_val=1.0, padding="same")
-    torch.testing.assert_close(ours, ref, rtol=1e-6, atol=1e-6)
-    torch.testing.assert_close(torch.autograd.grad(ours.sum(), y)[0], torch.autograd.grad(ref.sum(), y)[0],
-                               rtol=1e-5, atol=1e-6)
+    y64 = y.detach().double().requires_grad_(True)
+    ours, ref = ssim_map(x, y), ssim(x.double(), y64, 3, max_val=1.0, padding="same")
+    torch.testing.assert_close(ours.double(), ref, rtol=0, atol=1e-5)
+    torch.testing.assert_close(torch.autograd.grad(ours.sum(), y)[0].double(), torch.autograd.grad(ref.sum(), y64)[0],
+                               rtol=1e-5, atol=5e-5)
     torch.testing.assert_close(ssim_map(x, x), torch.ones_like(x), rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(2, 5, 7, 9), (1, 3, 2, 2), (1, 2, 3, 11)])
+def test_ssim_window_pass_is_a_reflect_padded_convolution_and_its_adjoint(shape: tuple[int, ...]) -> None:
+    """SSIM's 1-D window pass (shifted adds) equals F.pad(reflect) + a depthwise convolution along each dimension in
+    float64, down to 2 samples, for a channels-last input too; its gradient passes torch.autograd.gradcheck."""
+    import torch.nn.functional as F
+
+    from dfvo.losses.photometric import _ReflectFilter3
+
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(*shape, generator=g, dtype=torch.float64, requires_grad=True)
+    w0 = 0.3
+    w1 = 1 - 2 * w0
+    n = shape[1]
+    for dim, pad, k in ((-1, (1, 1, 0, 0), (1, 1, 1, 3)), (-2, (0, 0, 1, 1), (1, 1, 3, 1))):
+        kernel = torch.tensor([w0, w1, w0], dtype=torch.float64).view(k).expand(n, *k[1:])
+        ref = F.conv2d(F.pad(x, pad, mode="reflect"), kernel, groups=n)
+        torch.testing.assert_close(_ReflectFilter3.apply(x, w0, dim), ref, rtol=1e-14, atol=1e-14)
+        torch.testing.assert_close(_ReflectFilter3.apply(x.to(memory_format=torch.channels_last), w0, dim), ref,
+                                   rtol=1e-14, atol=1e-14)
+        assert torch.autograd.gradcheck(lambda t, d=dim: _ReflectFilter3.apply(t, w0, d), (x,))
+
+
+def test_ssim_with_the_targets_moments_given_is_the_same_to_the_bit() -> None:
+    """A target compared with several views: its moments computed once (and repeated per view) give SSIM + L1 equal
+    to the bit to computing them in the call, and the same gradient for the views."""
+    from dfvo.losses.photometric import ssim_moments
+
+    g = torch.Generator().manual_seed(5)
+    target = torch.rand(2, 3, 9, 13, generator=g)
+    views = torch.rand(6, 3, 9, 13, generator=g, requires_grad=True)
+    moments = tuple(m.repeat(3, 1, 1, 1) for m in ssim_moments(target))
+    plain, given = ssim_l1_error(target.repeat(3, 1, 1, 1), views), ssim_l1_error(target.repeat(3, 1, 1, 1), views,
+                                                                                  target_moments=moments)
+    assert torch.equal(plain, given)
+    assert torch.equal(torch.autograd.grad(plain.sum(), views)[0], torch.autograd.grad(given.sum(), views)[0])

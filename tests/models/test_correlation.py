@@ -52,3 +52,53 @@ def test_correlation_gradients_and_errors() -> None:
         correlation(f1, f2[:, :, :5], 1)
     with pytest.raises(Exception, match="max_displacement"):
         correlation(f1, f2, -1)
+
+
+def _autograd_reference(f1: torch.Tensor, f2: torch.Tensor, r: int, stride: int) -> torch.Tensor:
+    """The layer as autograd differentiates it: a multiply and a channel sum per displacement of the padded feat2."""
+    c, h, w = f1.shape[1:]
+    f2p = torch.nn.functional.pad(f2, (r * stride,) * 4)
+    return torch.stack([(f1 * f2p[:, :, iy * stride: iy * stride + h, ix * stride: ix * stride + w]).sum(1)
+                        for iy in range(2 * r + 1) for ix in range(2 * r + 1)], 1) / c
+
+
+@pytest.mark.parametrize("r,stride", [(0, 1), (1, 1), (2, 2), (3, 1)])
+def test_correlation_gradient_is_the_derivative(r: int, stride: int) -> None:
+    """The hand-written backward passes torch.autograd.gradcheck (float64, both inputs)."""
+    g = torch.Generator().manual_seed(7 + r)
+    f1 = torch.randn(2, 3, 5, 6, generator=g, dtype=torch.float64, requires_grad=True)
+    f2 = torch.randn(2, 3, 5, 6, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, b: correlation(a, b, r, stride), (f1, f2))
+
+
+@pytest.mark.parametrize("dtypes", [(torch.float32, torch.float32), (torch.bfloat16, torch.bfloat16),
+                                    (torch.bfloat16, torch.float32)])
+def test_correlation_values_are_autograds_to_the_bit_and_gradients_to_rounding(
+        dtypes: tuple[torch.dtype, torch.dtype]) -> None:
+    """In each precision a training step meets (bf16 features against float32 warped ones under autocast), the values
+    equal the autograd formulation's bit for bit and the gradients it gives (same dtypes as the inputs) agree to the
+    precision's rounding."""
+    g = torch.Generator().manual_seed(11)
+    f1 = torch.randn(2, 16, 12, 20, generator=g).to(dtypes[0]).requires_grad_(True)
+    f2 = torch.randn(2, 16, 12, 20, generator=g).to(dtypes[1]).requires_grad_(True)
+    ours, ref = correlation(f1, f2, 3), _autograd_reference(f1, f2, 3, 1)
+    assert ours.dtype == ref.dtype and torch.equal(ours, ref)
+    weight = torch.randn(ours.shape, generator=g)
+    g_ours = torch.autograd.grad((ours.float() * weight).sum(), (f1, f2))
+    g_ref = torch.autograd.grad((ref.float() * weight).sum(), (f1, f2))
+    for a, b, dt in zip(g_ours, g_ref, dtypes):
+        assert a.dtype == b.dtype == dt
+        tol = 1e-5 if dt == torch.float32 else 3e-2  # bf16: autograd sums 49 bf16 terms, ours in float32
+        torch.testing.assert_close(a.float(), b.float(), rtol=tol, atol=tol * b.float().abs().max().item())
+
+
+def test_correlation_without_gradients_is_the_same_to_the_bit() -> None:
+    """Inference (no gradient wanted) takes the plain tensor path, with the training path's values to the bit."""
+    g = torch.Generator().manual_seed(13)
+    f1 = torch.randn(2, 16, 12, 20, generator=g).to(torch.bfloat16)
+    f2 = torch.randn(2, 16, 12, 20, generator=g)
+    with torch.no_grad():
+        plain = correlation(f1, f2, 2)
+    trained = correlation(f1.requires_grad_(True), f2, 2)
+    assert trained.grad_fn is not None and plain.grad_fn is None
+    assert torch.equal(plain, trained.detach()) and torch.equal(plain, _autograd_reference(f1.detach(), f2, 2, 1))
