@@ -35,8 +35,34 @@ class Reprojection:
     grid: torch.Tensor
 
 
+@dataclass
+class SourceRays:
+    """The target's pixel rays seen from the source camera, which do not depend on the depth: a target pixel at depth
+    ``d`` is the source-camera point ``d * ray + t`` (:func:`source_rays`; one per view pair, reused at every scale).
+
+    Attributes:
+        rays: (B,H*W,3) ``R K^-1 [u, v, 1]`` of every target pixel (row-major), ``R`` the rotation of
+            ``T_source_target``.
+        t: (B,1,3) its translation.
+    """
+
+    rays: torch.Tensor
+    t: torch.Tensor
+
+
+def source_rays(T_source_target: torch.Tensor, K: torch.Tensor, height: int, width: int) -> SourceRays:
+    """:class:`SourceRays` of a (height, width) target view for ``T_source_target`` (B,4,4) and ``K`` (B,3,3)."""
+    KORNIA_CHECK_SHAPE(T_source_target, ["B", "4", "4"])
+    KORNIA_CHECK_SHAPE(K, ["B", "3", "3"])
+    B = K.shape[0]
+    grid = pixel_grid(height, width, K.device, K.dtype).reshape(1, height * width, 2).expand(B, -1, -1)
+    unit = backproject_points(grid, torch.ones(B, height * width, device=K.device, dtype=K.dtype), K)  # z = 1
+    T = T_source_target.to(K.dtype)
+    return SourceRays(rays=unit @ T[:, :3, :3].transpose(1, 2), t=T[:, None, :3, 3])
+
+
 def reproject(source: torch.Tensor, depth_target: torch.Tensor, T_source_target: torch.Tensor,
-              K: torch.Tensor) -> Reprojection:
+              K: torch.Tensor, rays: SourceRays | None = None) -> Reprojection:
     """Inverse-warp ``source`` into the target view.
 
     Args:
@@ -44,6 +70,9 @@ def reproject(source: torch.Tensor, depth_target: torch.Tensor, T_source_target:
         depth_target: (B,1,H,W) depth of the target view.
         T_source_target: (B,4,4) target camera -> source camera.
         K: (B,3,3) intrinsics of both views at this resolution.
+        rays: :func:`source_rays` of ``T_source_target`` and ``K`` when several depths are warped with the same pose
+            (the scales of a training step): the back-projection and rotation are then done once (the same points to
+            float rounding).
 
     Returns:
         :class:`Reprojection`.
@@ -55,9 +84,13 @@ def reproject(source: torch.Tensor, depth_target: torch.Tensor, T_source_target:
     B, _, H, W = depth_target.shape
     if source.shape[-2:] != (H, W):
         raise ValueError(f"reproject: source {tuple(source.shape)} and depth {tuple(depth_target.shape)} differ")
-    grid = pixel_grid(H, W, depth_target.device, depth_target.dtype).reshape(1, H * W, 2).expand(B, -1, -1)
-    points = backproject_points(grid, depth_target.reshape(B, H * W), K)
-    pix, z = project_points(transform_points(T_source_target.to(points.dtype), points), K)
+    if rays is None:
+        grid = pixel_grid(H, W, depth_target.device, depth_target.dtype).reshape(1, H * W, 2).expand(B, -1, -1)
+        points = transform_points(T_source_target.to(depth_target.dtype),
+                                  backproject_points(grid, depth_target.reshape(B, H * W), K))
+    else:
+        points = torch.addcmul(rays.t, rays.rays, depth_target.reshape(B, H * W, 1))
+    pix, z = project_points(points, K)
     u, v = pix[..., 0], pix[..., 1]
     tol = 1e-3  # pixels: border pixels reprojected onto themselves stay inside despite rounding
     valid = ((z > 1e-3) & (u >= -tol) & (u <= W - 1 + tol) & (v >= -tol) & (v <= H - 1 + tol)

@@ -43,7 +43,7 @@ from dfvo.io.checkpoint import find_checkpoint, load_weights, read_state_dict
 from dfvo.losses.depth_consistency import depth_consistency_loss, inverse_depth_difference
 from dfvo.losses.depth_supervision import log_depth_l1
 from dfvo.losses.photometric import INVALID_ERROR, min_over_views, ssim_l1_error, ssim_moments
-from dfvo.losses.reprojection import reproject
+from dfvo.losses.reprojection import reproject, source_rays
 from dfvo.losses.road_height import road_height_log_l1
 from dfvo.losses.smoothness import edge_aware_smoothness
 from dfvo.models.depth_net import SCALES, DepthNet, disp_to_depth, network_width
@@ -215,6 +215,7 @@ class DepthPoseModule(L.LightningModule):
         n = len(sources)
         srcs = torch.cat([src for _, src, _ in sources])
         T_all, K_all, image_all = torch.cat([T for _, _, T in sources]), K.repeat(n, 1, 1), image.repeat(n, 1, 1, 1)
+        rays = source_rays(T_all, K_all, H, W)  # every view's back-projected, rotated pixel rays: one per step
         # the target's SSIM moments serve every view and scale (the same values as computing them in each call)
         target_moments = tuple(m.repeat(n, 1, 1, 1) for m in ssim_moments(image))
         identity = []
@@ -232,7 +233,7 @@ class DepthPoseModule(L.LightningModule):
         for s in SCALES:
             disp_full = F.interpolate(disps[s], size=(H, W), mode="bilinear", align_corners=False)
             depth = disp_to_depth(disp_full, self.min_depth, self.max_depth)
-            rep = reproject(srcs, depth.repeat(n, 1, 1, 1), T_all, K_all)
+            rep = reproject(srcs, depth.repeat(n, 1, 1, 1), T_all, K_all, rays)
             errors = [*identity, *ssim_l1_error(image_all, rep.warped, self.alpha, target_moments).split(B)]
             valids = [None] * len(identity) + list(rep.valid.split(B))
             diffs, dvalids = [], []

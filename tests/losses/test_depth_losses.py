@@ -192,3 +192,28 @@ def test_ssim_with_the_targets_moments_given_is_the_same_to_the_bit() -> None:
                                                                                   target_moments=moments)
     assert torch.equal(plain, given)
     assert torch.equal(torch.autograd.grad(plain.sum(), views)[0], torch.autograd.grad(given.sum(), views)[0])
+
+
+def test_reprojection_with_the_source_rays_given_is_the_same_warp(world_frame: dict) -> None:
+    """Warping with the pose's rays computed once (source_rays) gives the same points, validity and warped image as
+    back-projecting each depth (float32 rounding), at two depths; and its gradient reaches the depth and the pose."""
+    from dfvo.losses.reprojection import source_rays
+
+    f = world_frame
+    image, K = f["image_next"][None], f["K"][None].float()
+    T = f["T_next_cur"][None].float().requires_grad_(True)
+    H, W = image.shape[-2:]
+    rays = source_rays(T, K, H, W)
+    for factor in (1.0, 1.3):
+        depth = (f["depth"][None] * factor).requires_grad_(True)
+        plain, given = reproject(image, depth, T, K), reproject(image, depth, T, K, rays)
+        both = (given.valid & plain.valid)[:, 0]
+        assert (given.valid != plain.valid).float().mean() < 1e-3 and both.float().mean() > 0.5  # border rounding
+        torch.testing.assert_close(given.grid[both], plain.grid[both], rtol=0, atol=1e-5)
+        torch.testing.assert_close(given.depth_in_source, plain.depth_in_source, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(given.warped.permute(0, 2, 3, 1)[both], plain.warped.permute(0, 2, 3, 1)[both],
+                                   rtol=0, atol=1e-4)
+        g_plain = torch.autograd.grad(plain.warped.sum(), (depth, T))
+        g_given = torch.autograd.grad(given.warped.sum(), (depth, T), retain_graph=True)
+        for a, b in zip(g_given, g_plain):
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-3 * b.abs().max().item())
