@@ -89,6 +89,9 @@ def reproject(source: torch.Tensor, depth_target: torch.Tensor, T_source_target:
         points = transform_points(T_source_target.to(depth_target.dtype),
                                   backproject_points(grid, depth_target.reshape(B, H * W), K))
     else:
+        if tuple(rays.rays.shape) != (B, H * W, 3):
+            raise ValueError(f"reproject: rays {tuple(rays.rays.shape)} do not fit depth {tuple(depth_target.shape)} "
+                             f"(expected ({B}, {H * W}, 3): source_rays of the same pose batch and size)")
         points = torch.addcmul(rays.t, rays.rays, depth_target.reshape(B, H * W, 1))
     pix, z = project_points(points, K)
     u, v = pix[..., 0], pix[..., 1]

@@ -217,3 +217,5 @@ def test_reprojection_with_the_source_rays_given_is_the_same_warp(world_frame: d
         g_given = torch.autograd.grad(given.warped.sum(), (depth, T), retain_graph=True)
         for a, b in zip(g_given, g_plain):
             torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-3 * b.abs().max().item())
+    with pytest.raises(ValueError, match="rays"):
+        reproject(image, f["depth"][None], T, K, source_rays(T, K, H, W - 1))
