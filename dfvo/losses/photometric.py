@@ -14,45 +14,43 @@ INVALID_ERROR = 1e4  # error given to out-of-view pixels before the per-pixel mi
 
 
 SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2  # SSIM's stabilising constants for images in [0, 1]
+_SSIM_EPS = 1e-12  # added to SSIM's denominator (ssim_map's default eps)
 
 
 class _ReflectFilter3(torch.autograd.Function):
     """A normalised symmetric 3-tap filter ``(w, 1 - 2w, w)`` along one dimension of a (B,C,H,W) tensor with reflect
-    padding by one sample (``F.pad(mode="reflect")`` then a valid 1-D convolution), written as ``x + w * (left + right
-    - 2x)`` with in-place shifted adds (a constant stays exactly constant, so SSIM's variances ``E[x^2] - mu^2`` of a
-    flat patch are exactly 0); its backward is the filter's adjoint written the same way. On a CPU this is faster than
-    a depthwise ``conv2d`` of the padded tensor and its backward (the convolution library has no fast path for one
-    channel per group and three taps): SSIM's forward and backward on 12 views of 96x320, 135 -> ~80 ms on one Zen 4
-    thread (docs/training.md, "The losses' arithmetic")."""
+    padding by one sample (``F.pad(mode="reflect")`` then a valid 1-D convolution), written as one scaled copy and two
+    shifted in-place ``add_(alpha=w)`` (plus the two reflected end samples); its backward is the filter's adjoint
+    written the same way. On a CPU this is faster than a depthwise ``conv2d`` of the padded tensor and its backward
+    (the convolution library has no fast path for one channel per group and three taps): docs/training.md, "The
+    losses' arithmetic"."""
 
     @staticmethod
-    def _second_difference(x: torch.Tensor, dim: int, adjoint: bool) -> torch.Tensor:
-        """``left + right - 2x`` along ``dim`` with reflected ends (``adjoint``: its transpose)."""
+    def apply_taps(x: torch.Tensor, w: float, dim: int, adjoint: bool) -> torch.Tensor:
+        """The filter along ``dim`` (``adjoint``: its transpose) of ``x`` into a new tensor."""
         n = x.shape[dim]
-        d = x * -2.0
-        d.narrow(dim, 1, n - 1).add_(x.narrow(dim, 0, n - 1))
-        d.narrow(dim, 0, n - 1).add_(x.narrow(dim, 1, n - 1))
+        out = x * (1.0 - 2.0 * w)
+        out.narrow(dim, 1, n - 1).add_(x.narrow(dim, 0, n - 1), alpha=w)
+        out.narrow(dim, 0, n - 1).add_(x.narrow(dim, 1, n - 1), alpha=w)
         if adjoint:  # sample 1 also fed out[0], sample n-2 also fed out[n-1]
-            d.narrow(dim, 1, 1).add_(x.narrow(dim, 0, 1))
-            d.narrow(dim, n - 2, 1).add_(x.narrow(dim, n - 1, 1))
+            out.narrow(dim, 1, 1).add_(x.narrow(dim, 0, 1), alpha=w)
+            out.narrow(dim, n - 2, 1).add_(x.narrow(dim, n - 1, 1), alpha=w)
         else:  # the reflected neighbours of the first and the last sample
-            d.narrow(dim, 0, 1).add_(x.narrow(dim, 1, 1))
-            d.narrow(dim, n - 1, 1).add_(x.narrow(dim, n - 2, 1))
-        return d
+            out.narrow(dim, 0, 1).add_(x.narrow(dim, 1, 1), alpha=w)
+            out.narrow(dim, n - 1, 1).add_(x.narrow(dim, n - 2, 1), alpha=w)
+        return out
 
     @staticmethod
     def forward(ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor, w: float,  # type: ignore[override]
                 dim: int) -> torch.Tensor:
         ctx.w, ctx.dim = w, dim  # type: ignore[attr-defined]
-        # in place: a fresh output tensor of this size costs more than the arithmetic (page faults)
-        return _ReflectFilter3._second_difference(x, dim, False).mul_(w).add_(x)
+        return _ReflectFilter3.apply_taps(x, w, dim, False)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor  # type: ignore[override]
                  ) -> tuple[torch.Tensor, None, None]:
-        w, dim = ctx.w, ctx.dim  # type: ignore[attr-defined]
-        return _ReflectFilter3._second_difference(grad, dim, True).mul_(w).add_(grad), None, None
+        return _ReflectFilter3.apply_taps(grad, ctx.w, ctx.dim, True), None, None  # type: ignore[attr-defined]
 
 
 def ssim_moments(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,15 +61,28 @@ def ssim_moments(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return moments[:, :c], moments[:, c:]
 
 
+def _window_tap(dtype: torch.dtype) -> float:
+    """The outer tap ``w`` of SSIM's 1-D Gaussian window (3 taps, sigma 1.5, normalised; the centre is 1 - 2w)."""
+    return float(get_gaussian_kernel1d(3, 1.5, dtype=dtype)[0, 0])
+
+
 def _filter(moments: torch.Tensor) -> torch.Tensor:
     """SSIM's 3x3 Gaussian window (sigma 1.5, reflect padding) over every channel of (B,N,H,W), as two 1-D passes."""
-    kernel = get_gaussian_kernel1d(3, 1.5, device=moments.device, dtype=moments.dtype)
-    w = float(kernel[0, 0])  # the outer taps; the centre one is 1 - 2w
+    w = _window_tap(moments.dtype)
     # contiguous (NCHW): the shifted adds along W are slower on a channels-last tensor (strided rows)
     return _ReflectFilter3.apply(_ReflectFilter3.apply(moments.contiguous(), w, -1), w, -2)
 
 
-def ssim_map(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12,
+def _filter_adjoint(grad: torch.Tensor) -> torch.Tensor:
+    """The adjoint (transpose) of :func:`_filter` applied to a (B,N,H,W) gradient: each 1-D pass's adjoint."""
+    w = _window_tap(grad.dtype)
+    out = grad.contiguous()
+    for dim in (-2, -1):
+        out = _ReflectFilter3.apply_taps(out, w, dim, True)
+    return out
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor, eps: float = _SSIM_EPS,
              x_moments: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Per-pixel, per-channel SSIM (B,C,H,W) of images (B,C,H,W) in [0,1] with a 3x3 Gaussian window (sigma 1.5) and
     reflect padding: ``kornia.metrics.ssim(x, y, 3, padding="same")``'s values (to float32 rounding, tested).
@@ -93,6 +104,66 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, eps: float = 1e-12,
     return num / (den + eps)
 
 
+class _SsimL1Error(torch.autograd.Function):
+    """:func:`ssim_l1_error`'s per-pixel error with its gradient w.r.t. the warped view written by hand.
+
+    The forward is :func:`ssim_map`'s arithmetic (the same values to float rounding, tested), with the warped view's
+    three moments written into one (B,3,C,H,W) buffer and filtered together. While the graph is recorded it also
+    forms SSIM's three partial derivatives w.r.t. the filtered moments ``mu_y``, ``E[y^2]`` and ``E[xy]`` from the
+    quotient's factors it already holds (times the clamp's mask); the backward is then one product with the incoming
+    gradient, the window's adjoint over the stacked three, and the chain rule through ``y``, ``y^2`` and ``xy``,
+    instead of autograd's pass back through every operation of the quotient (tested against autograd in float64 and
+    by gradcheck). :func:`ssim_l1_error` keeps the autograd formulation for a ``target`` or moments that need a
+    gradient and when no graph is recorded."""
+
+    @staticmethod
+    def forward(ctx: torch.autograd.function.FunctionCtx, target: torch.Tensor,  # type: ignore[override]
+                warped: torch.Tensor, alpha: float, mu_x: torch.Tensor, e_xx: torch.Tensor) -> torch.Tensor:
+        B, c, H, W = target.shape
+        stack = torch.empty((B, 3, c, H, W), dtype=torch.result_type(target, warped), device=warped.device)
+        stack[:, 0].copy_(warped)
+        torch.mul(warped, warped, out=stack[:, 1])
+        torch.mul(target, warped, out=stack[:, 2])
+        mu_y, e_yy, e_xy = _filter(stack.view(B, 3 * c, H, W)).view(B, 3, c, H, W).unbind(1)
+        mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+        a = (mu_xy * 2.0).add_(SSIM_C1)
+        b = (e_xy - mu_xy).mul_(2.0).add_(SSIM_C2)
+        cc = (mu_xx + mu_yy).add_(SSIM_C1)
+        d = (e_xx - mu_xx).add_(e_yy - mu_yy).add_(SSIM_C2)
+        q = (cc * d).add_(_SSIM_EPS)
+        s = (a * b).div_(q)
+        half = (1.0 - s).mul_(0.5)
+        dssim = half.clamp(0.0, 1.0).mean(1, keepdim=True)
+        diff = target - warped
+        l1 = diff.abs().mean(1, keepdim=True)
+        if ctx.needs_input_grad[1]:
+            # ds/d(mu_y, E[y^2], E[xy]) of s = a b / (cc d + eps), zero where the clamp cuts (it passes its closed band)
+            inv_q = q.reciprocal_()
+            partials = torch.empty_like(stack)
+            torch.mul(s, cc, out=partials[:, 1]).mul_(inv_q).neg_()
+            torch.mul(a, inv_q, out=partials[:, 2]).mul_(2.0)
+            torch.sub(cc, d, out=d).mul_(s).mul_(mu_y)  # d is not needed any more
+            torch.addcmul(d, b.sub_(a), mu_x, out=partials[:, 0]).mul_(inv_q).mul_(2.0)
+            partials.mul_(((half >= 0.0) & (half <= 1.0)).unsqueeze(1))
+            ctx.save_for_backward(target, warped, partials, diff.sign_())
+            ctx.alpha = alpha  # type: ignore[attr-defined]
+        return alpha * dssim + (1.0 - alpha) * l1
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor  # type: ignore[override]
+                 ) -> tuple[None, torch.Tensor, None, None, None]:
+        target, warped, partials, sign = ctx.saved_tensors  # type: ignore[attr-defined]
+        alpha = ctx.alpha  # type: ignore[attr-defined]
+        B, c, H, W = target.shape
+        # d error / d s per channel is -alpha / (2 c): SSIM's term is alpha * mean_c((1 - s) / 2)
+        g_moments = partials * (grad * (-alpha / (2.0 * c))).unsqueeze(1)
+        g_mu_y, g_e_yy, g_e_xy = _filter_adjoint(g_moments.view(B, 3 * c, H, W)).view(B, 3, c, H, W).unbind(1)
+        # through mu_y <- y, E[y^2] <- y^2, E[xy] <- x y, and the L1 term: d|x - y|/dy = -sign(x - y)
+        g_y = torch.addcmul(g_mu_y, g_e_xy, target).addcmul_(g_e_yy, warped, value=2.0)
+        return None, g_y.addcmul_(sign, grad, value=-(1.0 - alpha) / c), None, None, None
+
+
 def ssim_l1_error(target: torch.Tensor, warped: torch.Tensor, alpha: float = 0.85,
                   target_moments: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Per-pixel ``alpha * (1 - SSIM) / 2 + (1 - alpha) * |I - I'|``.
@@ -104,14 +175,19 @@ def ssim_l1_error(target: torch.Tensor, warped: torch.Tensor, alpha: float = 0.8
         target_moments: :func:`ssim_moments` of ``target`` when it is compared with several views (optional).
 
     Returns:
-        (B,1,H,W) error, 0 for identical images; SSIM with kornia's 3x3 window (:func:`ssim_map`).
+        (B,1,H,W) error, 0 for identical images; SSIM with kornia's 3x3 window (:func:`ssim_map`). Its gradient
+        w.r.t. ``warped`` is written by hand (:class:`_SsimL1Error`) unless ``target`` or its moments need one.
     """
     KORNIA_CHECK_SHAPE(target, ["B", "3", "H", "W"])
     KORNIA_CHECK_SHAPE(warped, ["B", "3", "H", "W"])
     if target.shape != warped.shape:
         raise ValueError(f"ssim_l1_error: target {tuple(target.shape)} and warped {tuple(warped.shape)} differ")
+    moments = ssim_moments(target) if target_moments is None else target_moments
+    needs_grad = torch.is_grad_enabled() and warped.requires_grad
+    if needs_grad and not (target.requires_grad or any(m.requires_grad for m in moments)):
+        return _SsimL1Error.apply(target, warped, alpha, *moments)
     l1 = (target - warped).abs().mean(1, keepdim=True)
-    s = ssim_map(target, warped, x_moments=target_moments)
+    s = ssim_map(target, warped, x_moments=moments)
     dssim = ((1.0 - s) / 2.0).clamp(0.0, 1.0).mean(1, keepdim=True)
     return alpha * dssim + (1.0 - alpha) * l1
 
