@@ -39,13 +39,20 @@ def load_photometric(code: Path, name: str) -> ModuleType:
 
 
 def time_loss(module: ModuleType, target: torch.Tensor, warped: torch.Tensor, repeats: int) -> list[float]:
-    """Seconds of ``repeats`` forward + backward calls of ``module.ssim_l1_error`` with the target's moments given."""
-    moments = tuple(m.repeat(warped.shape[0] // target.shape[0], 1, 1, 1) for m in module.ssim_moments(target))
-    target_all = target.repeat(warped.shape[0] // target.shape[0], 1, 1, 1)
+    """Seconds of ``repeats`` forward + backward calls of ``module.ssim_l1_error``, with the target's moments given
+    where the module has ``ssim_moments`` (trees before `1d414ba` compute them in every call)."""
+    views = warped.shape[0] // target.shape[0]
+    target_all = target.repeat(views, 1, 1, 1)
+    moments = None
+    if hasattr(module, "ssim_moments"):
+        moments = tuple(m.repeat(views, 1, 1, 1) for m in module.ssim_moments(target))
     times = []
     for _ in range(repeats):
+        warped.grad = None
         start = time.perf_counter()
-        module.ssim_l1_error(target_all, warped, 0.85, moments).mean().backward()
+        error = module.ssim_l1_error(target_all, warped, 0.85, moments) if moments else module.ssim_l1_error(
+            target_all, warped, 0.85)
+        error.mean().backward()
         times.append(time.perf_counter() - start)
     return times
 

@@ -17,6 +17,14 @@ SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2  # SSIM's stabilising constants for images i
 _SSIM_EPS = 1e-12  # added to SSIM's denominator (ssim_map's default eps)
 
 
+def _refuse_create_graph(what: str) -> None:
+    """Raise inside a hand-written backward asked for a differentiable gradient (``autograd.grad(...,
+    create_graph=True)``, double backward): it would otherwise come back as a constant, silently."""
+    if torch.is_grad_enabled():
+        raise RuntimeError(f"{what}: its gradient is written by hand and cannot be differentiated again "
+                           "(create_graph=True / double backward)")
+
+
 class _ReflectFilter3(torch.autograd.Function):
     """A normalised symmetric 3-tap filter ``(w, 1 - 2w, w)`` along one dimension of a (B,C,H,W) tensor with reflect
     padding by one sample (``F.pad(mode="reflect")`` then a valid 1-D convolution), written as one scaled copy and two
@@ -47,9 +55,9 @@ class _ReflectFilter3(torch.autograd.Function):
         return _ReflectFilter3.apply_taps(x, w, dim, False)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor  # type: ignore[override]
                  ) -> tuple[torch.Tensor, None, None]:
+        _refuse_create_graph("SSIM's window")
         return _ReflectFilter3.apply_taps(grad, ctx.w, ctx.dim, True), None, None  # type: ignore[attr-defined]
 
 
@@ -150,9 +158,9 @@ class _SsimL1Error(torch.autograd.Function):
         return alpha * dssim + (1.0 - alpha) * l1
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor  # type: ignore[override]
                  ) -> tuple[None, torch.Tensor, None, None, None]:
+        _refuse_create_graph("ssim_l1_error")
         target, warped, partials, sign = ctx.saved_tensors  # type: ignore[attr-defined]
         alpha = ctx.alpha  # type: ignore[attr-defined]
         B, c, H, W = target.shape
@@ -183,6 +191,12 @@ def ssim_l1_error(target: torch.Tensor, warped: torch.Tensor, alpha: float = 0.8
     if target.shape != warped.shape:
         raise ValueError(f"ssim_l1_error: target {tuple(target.shape)} and warped {tuple(warped.shape)} differ")
     moments = ssim_moments(target) if target_moments is None else target_moments
+    if any(m.shape != target.shape for m in moments):  # e.g. one target's moments for a batch of its copies
+        try:
+            moments = tuple(m.expand_as(target) for m in moments)
+        except RuntimeError:
+            raise ValueError(f"ssim_l1_error: target_moments of shapes {[tuple(m.shape) for m in moments]} do not "
+                             f"broadcast to the target's {tuple(target.shape)}") from None
     needs_grad = torch.is_grad_enabled() and warped.requires_grad
     if needs_grad and not (target.requires_grad or any(m.requires_grad for m in moments)):
         return _SsimL1Error.apply(target, warped, alpha, *moments)

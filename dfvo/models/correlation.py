@@ -72,9 +72,11 @@ class _Correlation(torch.autograd.Function):
         return _cost_volume(f1, f2, r, stride)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx: torch.autograd.function.FunctionCtx, grad: torch.Tensor  # type: ignore[override]
                  ) -> tuple[torch.Tensor | None, torch.Tensor | None, None, None]:
+        if torch.is_grad_enabled():  # autograd.grad(..., create_graph=True): a silent constant otherwise
+            raise RuntimeError("correlation: its gradient is written by hand and cannot be differentiated again "
+                               "(create_graph=True / double backward)")
         f1, f2 = ctx.saved_tensors  # type: ignore[attr-defined]
         r, stride = ctx.geometry  # type: ignore[attr-defined]
         need1, need2 = ctx.needs_input_grad[:2]

@@ -247,6 +247,40 @@ def test_ssim_l1_keeps_autograd_where_the_target_needs_a_gradient() -> None:
     torch.testing.assert_close(plain, ssim_l1_error(target.detach(), warped).detach(), rtol=0, atol=1e-15)
 
 
+def test_hand_written_gradients_refuse_to_be_differentiated_again() -> None:
+    """SSIM + L1, SSIM's window and the correlation have first-order gradients written by hand: asking for a
+    differentiable gradient (create_graph=True) raises instead of returning one whose own gradient is silently 0."""
+    from dfvo.losses.photometric import ssim_map
+    from dfvo.models.correlation import correlation
+
+    g = torch.Generator().manual_seed(13)
+    target = torch.rand(1, 3, 4, 5, generator=g, dtype=torch.float64)
+    warped = torch.rand(1, 3, 4, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    f1 = torch.rand(1, 4, 5, 6, generator=g, dtype=torch.float64, requires_grad=True)
+    for name, value in (("ssim_l1_error", ssim_l1_error(target, warped)),
+                        ("SSIM's window", ssim_map(target.requires_grad_(True), warped)),
+                        ("correlation", correlation(f1, f1.detach() * 2, 1))):
+        with pytest.raises(RuntimeError, match=f"{name}.*cannot be differentiated again"):
+            torch.autograd.grad(value.sum(), warped if name != "correlation" else f1, create_graph=True)
+
+
+def test_ssim_l1_takes_target_moments_that_broadcast() -> None:
+    """One target's moments for a batch of its copies give the same error and gradient as the batch's own moments
+    (as the composed formulation accepts); moments that do not broadcast are refused in one line naming the shapes."""
+    from dfvo.losses.photometric import ssim_moments
+
+    g = torch.Generator().manual_seed(14)
+    one = torch.rand(1, 3, 6, 7, generator=g, dtype=torch.float64)
+    batch = one.expand(3, -1, -1, -1)
+    warped = torch.rand(3, 3, 6, 7, generator=g, dtype=torch.float64, requires_grad=True)
+    given, own = ssim_l1_error(batch, warped, target_moments=ssim_moments(one)), ssim_l1_error(batch, warped)
+    torch.testing.assert_close(given, own, rtol=0, atol=1e-15)
+    torch.testing.assert_close(torch.autograd.grad(given.sum(), warped)[0], torch.autograd.grad(own.sum(), warped)[0],
+                               rtol=0, atol=1e-15)
+    with pytest.raises(ValueError, match=r"target_moments of shapes \[\(2, 3, 6, 7\).*\(3, 3, 6, 7\)"):
+        ssim_l1_error(batch, warped, target_moments=ssim_moments(torch.rand(2, 3, 6, 7, dtype=torch.float64)))
+
+
 def test_reprojection_with_the_source_rays_given_is_the_same_warp(world_frame: dict) -> None:
     """Warping with the pose's rays computed once (source_rays) gives the same points, validity and warped image as
     back-projecting each depth (float32 rounding), at two depths; and its gradient reaches the depth and the pose."""
