@@ -106,10 +106,22 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, eps: float = _SSIM_EPS,
     else:
         mu_x, e_xx = x_moments
         mu_y, e_yy, e_xy = _filter(torch.cat([y, y * y, x * y], 1)).split(c, 1)
-    mu_xx, mu_yy, mu_xy = mu_x**2, mu_y**2, mu_x * mu_y
-    num = (2.0 * mu_xy + SSIM_C1) * (2.0 * (e_xy - mu_xy) + SSIM_C2)
-    den = (mu_xx + mu_yy + SSIM_C1) * ((e_xx - mu_xx) + (e_yy - mu_yy) + SSIM_C2)
-    return num / (den + eps)
+    a, b, _, _, q = _ssim_factors(mu_x, e_xx, mu_y, e_yy, e_xy, eps)
+    return (a * b) / q
+
+
+def _ssim_factors(mu_x: torch.Tensor, e_xx: torch.Tensor, mu_y: torch.Tensor, e_yy: torch.Tensor, e_xy: torch.Tensor,
+                  eps: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """SSIM ``= a b / q`` from the filtered moments (each (B,C,H,W)): ``a = 2 mu_x mu_y + C1``, ``b = 2 cov_xy + C2``,
+    ``cc = mu_x^2 + mu_y^2 + C1``, ``d = var_x + var_y + C2`` and ``q = cc d + eps``; returns ``(a, b, cc, d, q)``.
+    Its in-place steps act only on results that autograd does not keep, so it serves the differentiated
+    :func:`ssim_map` and the hand-written :class:`_SsimL1Error` (which needs the factors for its partials) alike."""
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    a = (mu_xy * 2.0).add_(SSIM_C1)
+    b = (e_xy - mu_xy).mul_(2.0).add_(SSIM_C2)
+    cc = (mu_xx + mu_yy).add_(SSIM_C1)
+    d = (e_xx - mu_xx).add_(e_yy - mu_yy).add_(SSIM_C2)
+    return a, b, cc, d, (cc * d).add_(eps)
 
 
 class _SsimL1Error(torch.autograd.Function):
@@ -133,12 +145,7 @@ class _SsimL1Error(torch.autograd.Function):
         torch.mul(warped, warped, out=stack[:, 1])
         torch.mul(target, warped, out=stack[:, 2])
         mu_y, e_yy, e_xy = _filter(stack.view(B, 3 * c, H, W)).view(B, 3, c, H, W).unbind(1)
-        mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
-        a = (mu_xy * 2.0).add_(SSIM_C1)
-        b = (e_xy - mu_xy).mul_(2.0).add_(SSIM_C2)
-        cc = (mu_xx + mu_yy).add_(SSIM_C1)
-        d = (e_xx - mu_xx).add_(e_yy - mu_yy).add_(SSIM_C2)
-        q = (cc * d).add_(_SSIM_EPS)
+        a, b, cc, d, q = _ssim_factors(mu_x, e_xx, mu_y, e_yy, e_xy, _SSIM_EPS)
         s = (a * b).div_(q)
         half = (1.0 - s).mul_(0.5)
         dssim = half.clamp(0.0, 1.0).mean(1, keepdim=True)
