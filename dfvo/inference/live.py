@@ -83,7 +83,7 @@ def run_live(cfg: InferConfig, data: Any, out: Path, device: str) -> dict[str, A
     refused: str | None = None
     start = time.perf_counter()
     try:
-        with SignalsToInterrupt():
+        with SignalsToInterrupt() as interrupts:
             reader.start()
             for frame in reader:
                 try:
@@ -93,15 +93,16 @@ def run_live(cfg: InferConfig, data: Any, out: Path, device: str) -> dict[str, A
                     break
                 extra = {"stream_frame": frame.index, "dropped_before": frame.dropped_before,
                          "timestamp": frame.timestamp}
-                if result.index == 0:
-                    trajectory.append(np.eye(4))
-                    poses.write(trajectory[0], frame.timestamp)
-                    table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init), None, extra)
-                    observers = build_observers(cfg, out, _first_frame(name, odo, odo.last_image, frame.timestamp))
-                else:
-                    write_frame(odo.last_record, poses, table, trajectory, diagnostics, observers, frame.timestamp,
-                                 extra)
-                stamps.append(frame.timestamp)
+                with interrupts.held():
+                    if result.index == 0:
+                        trajectory.append(np.eye(4))
+                        poses.write(trajectory[0], frame.timestamp)
+                        table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init), None, extra)
+                        observers = build_observers(cfg, out, _first_frame(name, odo, odo.last_image, frame.timestamp))
+                    else:
+                        write_frame(odo.last_record, poses, table, trajectory, diagnostics, observers, frame.timestamp,
+                                     extra)
+                    stamps.append(frame.timestamp)
                 if data.max_frames is not None and len(trajectory) >= int(data.max_frames):
                     break
     except RunInterrupted as err:

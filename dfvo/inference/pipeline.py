@@ -129,10 +129,11 @@ def _run(cfg: InferConfig, seq: Any, flow_src: Any, depth_src: Any, refine: Any,
             poses.write(trajectory[0], stamp(seq, 0))
         with writing(table.path):
             table.write(FrameDiagnostics(frame=0, tracker=TrackerUsed.init))
-        with SignalsToInterrupt():
+        with SignalsToInterrupt() as interrupts:
             for record in track_sequence(seq, flow_src, depth_src, vo, refine=refine, batch_size=cfg.batch_size,
                                          timer=timer, device=device, finetuner=finetuner, overlap=overlap):
-                write_frame(record, poses, table, trajectory, diagnostics, observers, stamp(seq, record.index))
+                with interrupts.held():
+                    write_frame(record, poses, table, trajectory, diagnostics, observers, stamp(seq, record.index))
                 bar.update(1)
                 bar.set_postfix(fps=f"{len(diagnostics) / (time.perf_counter() - start):.2f}")
     except RunInterrupted as err:

@@ -7,6 +7,8 @@ and the live run (:mod:`dfvo.inference.live`).
 from __future__ import annotations
 
 import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -29,20 +31,41 @@ class RunInterrupted(KeyboardInterrupt):
 
 
 class SignalsToInterrupt:
-    """While active, SIGTERM (and SIGINT) raise :class:`RunInterrupted` in the main thread."""
+    """While active, SIGTERM (and SIGINT) raise :class:`RunInterrupted` in the main thread.
+
+    Inside :meth:`held` (one frame's writes: its pose line, its ``frames.csv`` row, the in-memory trajectory) a signal
+    is kept until the block ends, so the pose file, ``frames.csv`` and the summary's ``frames_written`` always count the
+    same frames.
+    """
 
     def __enter__(self) -> SignalsToInterrupt:
         self.previous: dict[int, Any] = {}
+        self._holding = False
+        self._pending: int | None = None
         for sig in (signal.SIGINT, signal.SIGTERM):
             try:
-                self.previous[sig] = signal.signal(sig, self._raise)
+                self.previous[sig] = signal.signal(sig, self._on_signal)
             except ValueError:  # not the main thread: keep the defaults
                 pass
         return self
 
-    @staticmethod
-    def _raise(signum: int, frame: Any) -> None:
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        if self._holding:
+            self._pending = self._pending or signum
+            return
         raise RunInterrupted(signum)
+
+    @contextmanager
+    def held(self) -> Iterator[None]:
+        """Keep a signal that arrives inside the block until the block has finished, then raise it."""
+        self._holding = True
+        try:
+            yield
+        finally:
+            self._holding = False
+        if self._pending is not None:
+            signum, self._pending = self._pending, None
+            raise RunInterrupted(signum)
 
     def __exit__(self, *exc: Any) -> None:
         for sig, handler in self.previous.items():
