@@ -1,4 +1,5 @@
-"""The hand-held world: a camera held over a desk in the corner of two walls, moved by hand.
+"""The hand-held worlds: a camera held over a desk in the corner of two walls, or over a large print on a desk
+(one plane fills the view), moved by hand.
 
 What the street worlds cannot show: a scene of a few large planes (the desk, the back wall, the side wall) seen from
 half a metre to two metres, and a motion without a car's inertia, in all six degrees of freedom: it speeds up, stops
@@ -16,6 +17,11 @@ ground plane ``y = CAMERA_HEIGHT``; the camera starts ``DESK_CLEARANCE`` above i
   would leave them are mirrored).
 - Scene: the desk (a printed texture: papers and a blotter, grain down to millimetres), a back wall 1.6 m ahead and
   a side wall 0.9 m to the right, both covered in posters, and 4-7 books and boxes on the desk.
+- Planar (``planar=True``, scenario ``handheld_planar``): the same motion with the camera pitched 40-80 degrees down
+  (60 at the start), so that the desk alone fills the view (the view's top rays meet it within ~2 m), and a large
+  print on the desk (``PRINT_HALF`` around ``PRINT_CENTRE``: colour blobs and sharp-edged shapes, as a printed
+  poster or a pattern board); no walls and no objects: every pixel lies on one plane, the case where the essential
+  matrix is degenerate and the homography explains the flow.
 """
 
 from __future__ import annotations
@@ -29,23 +35,28 @@ from dfvo.synthetic.scene import KIND_PRINT, Scene
 from dfvo.synthetic.textures import band, fbm
 from dfvo.synthetic.trajectory import CAMERA_HEIGHT, Route, Trajectory, yaw_pose
 
-__all__ = ["DESK_CLEARANCE", "make_handheld_trajectory", "build_handheld_scene", "desk_ground"]
+__all__ = ["DESK_CLEARANCE", "make_handheld_trajectory", "build_handheld_scene", "desk_ground", "PLANAR_PITCH_RANGE"]
 
 DESK_CLEARANCE = 0.5  # the camera's start height above the desk, metres
 BOX_ACROSS, BOX_ALONG, HEIGHT_RANGE = 0.35, 0.3, (0.3, 0.8)
 YAW_LIMIT, PITCH_RANGE, ROLL_LIMIT = math.radians(25.0), (math.radians(-45.0), math.radians(-10.0)), \
     math.radians(12.0)
 BACK_WALL_Z, SIDE_WALL_X = 1.6, 0.9
+PLANAR_PITCH_RANGE, PLANAR_START_PITCH = (math.radians(-80.0), math.radians(-40.0)), math.radians(-60.0)
+PRINT_CENTRE, PRINT_HALF = (0.0, 0.35), (0.9, 0.75)  # the planar world's print on the desk: centre and half size (x, z)
 
 
-def make_handheld_trajectory(num_frames: int, seed: int, speed: float | tuple[float, float] | None = None
-                             ) -> Trajectory:
+def make_handheld_trajectory(num_frames: int, seed: int, speed: float | tuple[float, float] | None = None,
+                             planar: bool = False) -> Trajectory:
     """The hand-held motion (module docstring); ``speed``: the moving segments' speed in metres per frame, or a
-    range to draw each segment's from (default 0.01-0.06)."""
+    range to draw each segment's from (default 0.01-0.06); ``planar``: pitched down at the desk alone
+    (``PLANAR_PITCH_RANGE``)."""
     rng = np.random.default_rng(seed + 4049)
     lo, hi = (0.01, 0.06) if speed is None else ((speed, speed) if isinstance(speed, (int, float)) else speed)
+    pitch_range = PLANAR_PITCH_RANGE if planar else PITCH_RANGE
     pos = np.array([0.0, CAMERA_HEIGHT - DESK_CLEARANCE, 0.0])
-    ang = np.array([0.0, math.radians(-28.0), 0.0])  # yaw, pitch (negative: looking down), roll
+    # yaw, pitch (negative: looking down), roll
+    ang = np.array([0.0, PLANAR_START_PITCH if planar else math.radians(-28.0), 0.0])
     vel, rate = np.zeros(3), np.zeros(3)
     target_vel, target_rate = np.zeros(3), np.zeros(3)
     poses, names = [], []
@@ -81,7 +92,7 @@ def make_handheld_trajectory(num_frames: int, seed: int, speed: float | tuple[fl
                 vel[i], target_vel[i] = -vel[i], -target_vel[i]
         pos = pos + vel
         nxt = ang + rate
-        for i, (a, b) in enumerate(((-YAW_LIMIT, YAW_LIMIT), PITCH_RANGE, (-ROLL_LIMIT, ROLL_LIMIT))):
+        for i, (a, b) in enumerate(((-YAW_LIMIT, YAW_LIMIT), pitch_range, (-ROLL_LIMIT, ROLL_LIMIT))):
             if not a <= nxt[i] <= b:
                 rate[i], target_rate[i] = -rate[i], -target_rate[i]
         ang = ang + rate
@@ -113,8 +124,35 @@ def desk_ground(seed: int):
     return shade
 
 
-def build_handheld_scene(traj: Trajectory, seed: int) -> Scene:
-    """The desk, the two walls with posters and the objects on the desk (module docstring; deterministic)."""
+def print_ground(seed: int):
+    """Colour of the planar world's desk at world (x, z): the desk of :func:`desk_ground` with a large print
+    (``PRINT_HALF`` around ``PRINT_CENTRE``): colour blobs from 1 cm to 10 cm, a grain down to millimetres and
+    sharp-edged dark shapes."""
+    s = int(seed)
+    desk = desk_ground(seed)
+    (cx, cz), (hx, hz) = PRINT_CENTRE, PRINT_HALF
+
+    def shade(x: torch.Tensor, z: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+        inside = band(x, cx - hx, cx + hx, fp) * band(z, cz - hz, cz + hz, fp)
+        colour = torch.stack([fbm(x, z, s + 31 + c, 0.1, 6, fp) for c in range(3)], -1)
+        colour = 0.15 + 0.8 * ((colour - 0.5) * 2.0 + 0.5).clamp(0, 1)
+        colour = colour * (0.7 + 0.6 * (fbm(x, z, s + 43, 0.015, 3, fp) - 0.5))[:, None]  # the print's fine grain
+        # shapes: the level set of a coarse noise, its edge anti-aliased over the pixel footprint
+        level = fbm(x, z, s + 37, 0.06, 2, fp) - 0.5
+        ink = (level / (6.0 * fp.clamp_min(1e-4)) + 0.5).clamp(0, 1) * (fbm(x, z, s + 41, 0.2, 1, fp) > 0.5).float()
+        colour = colour * (1.0 - 0.8 * ink[:, None])
+        return desk(x, z, fp) * (1 - inside[:, None]) + colour * inside[:, None]
+
+    return shade
+
+
+def build_handheld_scene(traj: Trajectory, seed: int, planar: bool = False) -> Scene:
+    """The desk, the two walls with posters and the objects on the desk (module docstring; deterministic); with
+    ``planar``, the desk with its print alone (no boxes)."""
+    if planar:
+        return Scene(centre=np.zeros((0, 3)), yaw=np.zeros(0), half=np.zeros((0, 3)),
+                     kind=np.zeros(0, dtype=np.int64), color=np.zeros((0, 3)), seed=np.zeros(0, dtype=np.int64),
+                     num_dynamic=0, tracks=traj.tracks, ground=print_ground(seed))
     rng = np.random.default_rng(seed + 6007)
     rows: list[tuple] = []  # (centre xyz, yaw, half xyz, colour)
     top = CAMERA_HEIGHT  # the desk top

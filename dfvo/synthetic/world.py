@@ -51,8 +51,9 @@ class SyntheticWorld:
         scenario: "drive" (mixed: drive, turn, still, rotation, planar, moving_car; see
             :meth:`segment_names`), one hard case alone: "still", "rotation", "planar", "moving_car",
             "straight" (driving without turns), "city" (streets with a corner every block), "highway"
-            (motorway with traffic, ~2-3 m/frame) or "handheld" (a camera moved by hand over a desk in the corner
-            of two walls, 0.3-0.8 m above the desk: :mod:`dfvo.synthetic.handheld`).
+            (motorway with traffic, ~2-3 m/frame), "handheld" (a camera moved by hand over a desk in the corner
+            of two walls, 0.3-0.8 m above the desk: :mod:`dfvo.synthetic.handheld`) or "handheld_planar" (the same
+            hand pitched down at a large print on the desk: one plane fills the view).
         speed: the camera's cruise speed in metres per frame, or a (lo, hi) range drawn per world (e.g.
             ``TRAINING_SPEED``). None: the scenario's default (street ~0.9-1.2, city ``CITY_SPEED``, highway
             ``HIGHWAY_SPEED``). On streets, setting it also draws the corner radius and turn rate (below) and
@@ -90,9 +91,10 @@ class SyntheticWorld:
         if scenario == "highway":
             self._traj = make_highway_trajectory(int(num_frames), self.seed, speed)
             self._scene = build_highway_scene(self._traj, self.seed)
-        elif scenario == "handheld":
-            self._traj = make_handheld_trajectory(int(num_frames), self.seed, speed)
-            self._scene = build_handheld_scene(self._traj, self.seed)
+        elif scenario in ("handheld", "handheld_planar"):
+            planar = scenario == "handheld_planar"
+            self._traj = make_handheld_trajectory(int(num_frames), self.seed, speed, planar=planar)
+            self._scene = build_handheld_scene(self._traj, self.seed, planar=planar)
         else:
             self._traj = make_trajectory(scenario, int(num_frames), self.seed, speed, turn_rate)
             self._scene = build_scene(self._traj, self.seed)

@@ -97,12 +97,15 @@ def check_camera_height(height: float | None, setting: str) -> None:
           f"m); for {height} cm give {float(height) / 100:g}")
 
 
-def check_direction_confirmation(frames: int | None, by_pnp_deg: float | None, section: str) -> None:
-    """The direction gate's confirmations of a new direction (``confirm_direction_frames``,
-    ``confirm_direction_by_pnp_deg``) as a car's ``tracker.gate`` or a hand's ``tracker.handheld`` sets them: null
-    (off), or at least 2 frames and an angle in (0, 180) degrees; one line naming ``section``'s field otherwise."""
+def check_direction_confirmation(frames: int | None, by_pnp_deg: float | None, section: str,
+                                 length_frames: int | None = None) -> None:
+    """The gates' confirmations of a new motion (``confirm_direction_frames``, ``confirm_direction_by_pnp_deg``,
+    ``confirm_length_frames``) as a car's ``tracker.gate`` or a hand's ``tracker.handheld`` sets them: null (off), or
+    at least 2 frames and an angle in (0, 180) degrees; one line naming ``section``'s field otherwise."""
     check(frames is None or int(frames) >= 2,
           f"{section}.confirm_direction_frames={frames}; expected null (off) or >= 2")
+    check(length_frames is None or int(length_frames) >= 2,
+          f"{section}.confirm_length_frames={length_frames}; expected null (off) or >= 2")
     check(by_pnp_deg is None or 0.0 < float(by_pnp_deg) < 180.0,
           f"{section}.confirm_direction_by_pnp_deg={by_pnp_deg}; expected null (off) or an angle in (0, 180) degrees")
 
@@ -463,6 +466,13 @@ class GateConfig:
             (the epipolar constraint alone; the depth network's points) find the same new direction, so the motion
             turned. null (the default): off; a car's trackers locked onto a truck filling the view agree too. Needs
             ``tracker.mode=hybrid`` (the default; PnP does not run otherwise).
+        confirm_length_frames: a length the length gate rejects is accepted once this many frames in a row each had
+            a result rejected by it and their lengths agree (each pair within the gate's own ratio, ``max_length_ratio``
+            or the sequence's wider one); the expectation then restarts from those lengths: a hand slows down (or
+            speeds up) threefold from one frame to the next and stays at its new pace, where the gate would hold the
+            old length for ``max_consecutive`` frames. The scale filter keeps its own restart
+            (``scale_filter.max_rejections``: restarting it as early made ``handheld_markers`` worse, docs/robots.md).
+            null (the default): off; a car's trackers locked onto a truck filling the view agree with themselves too.
     """
 
     enabled: bool = True
@@ -481,6 +491,7 @@ class GateConfig:
     adaptive_min_changes: int = 8
     confirm_direction_frames: int | None = None
     confirm_direction_by_pnp_deg: float | None = None
+    confirm_length_frames: int | None = None
 
     def __post_init__(self) -> None:
         check(self.adaptive_sigmas >= 0 and int(self.adaptive_window) >= 2 and int(self.adaptive_min_changes) >= 1,
@@ -491,7 +502,8 @@ class GateConfig:
         check(int(self.length_window) >= 1 and int(self.max_consecutive) >= 0,
                f"tracker.gate: length_window={self.length_window} (expected >= 1), max_consecutive="
                f"{self.max_consecutive} (expected >= 0)")
-        check_direction_confirmation(self.confirm_direction_frames, self.confirm_direction_by_pnp_deg, "tracker.gate")
+        check_direction_confirmation(self.confirm_direction_frames, self.confirm_direction_by_pnp_deg, "tracker.gate",
+                                     self.confirm_length_frames)
         check(0.0 <= self.min_inlier_fraction < 1.0, f"tracker.gate.min_inlier_fraction="
                                                       f"{self.min_inlier_fraction}; expected [0, 1)")
 
@@ -505,23 +517,25 @@ class HandheldConfig:
     Attributes:
         confirm_direction_frames: :attr:`GateConfig.confirm_direction_frames` for a hand (null: off).
         confirm_direction_by_pnp_deg: :attr:`GateConfig.confirm_direction_by_pnp_deg` for a hand (null: off).
+        confirm_length_frames: :attr:`GateConfig.confirm_length_frames` for a hand (null: off).
         planar: :attr:`ModelSelectionConfig.planar` for a hand (the homography's own decomposition on a desk or a
             wall, where PnP would trust the driving-trained depth); with ``model_selection.method=flow`` (no
             homography is fitted) PnP tracks planar pairs whatever this says (``summary.json``'s ``motion.settings``
             gives what ran).
-    With ``auto`` or ``handheld`` a value set in ``tracker.gate`` / ``tracker.model_selection`` for these three
+    With ``auto`` or ``handheld`` a value set in ``tracker.gate`` / ``tracker.model_selection`` for these four
     fields is a car's: after a hand-held verdict this section's apply (set ``tracker.motion=car`` to keep them).
     Measured in docs/robots.md (the synthetic hand-held world and ``handheld_markers``).
     """
 
     confirm_direction_frames: int | None = 2
     confirm_direction_by_pnp_deg: float | None = 45.0
+    confirm_length_frames: int | None = 2
     planar: PlanarMotion = PlanarMotion.homography
 
     def __post_init__(self) -> None:
         self.planar = choice(PlanarMotion, self.planar, "tracker.handheld.planar")
         check_direction_confirmation(self.confirm_direction_frames, self.confirm_direction_by_pnp_deg,
-                                     "tracker.handheld")
+                                     "tracker.handheld", self.confirm_length_frames)
 
 
 @dataclass

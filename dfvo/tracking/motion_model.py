@@ -36,6 +36,7 @@ class MotionSettings:
     confirm_direction_frames: int | None
     confirm_direction_by_pnp_deg: float | None
     planar: PlanarMotion
+    confirm_length_frames: int | None = None
 
 
 def motion_settings(cfg: TrackerConfig, motion: MotionModel) -> MotionSettings:
@@ -45,9 +46,11 @@ def motion_settings(cfg: TrackerConfig, motion: MotionModel) -> MotionSettings:
     if motion == MotionModel.handheld:
         h = cfg.handheld
         planar = h.planar if cfg.model_selection.method == ModelSelectionMethod.gric else PlanarMotion.pnp
-        return MotionSettings(h.confirm_direction_frames, h.confirm_direction_by_pnp_deg, planar)
+        return MotionSettings(h.confirm_direction_frames, h.confirm_direction_by_pnp_deg, planar,
+                              h.confirm_length_frames)
     g = cfg.gate
-    return MotionSettings(g.confirm_direction_frames, g.confirm_direction_by_pnp_deg, cfg.model_selection.planar)
+    return MotionSettings(g.confirm_direction_frames, g.confirm_direction_by_pnp_deg, cfg.model_selection.planar,
+                          g.confirm_length_frames)
 
 
 def off_axis_deg(direction: torch.Tensor) -> float:

@@ -109,6 +109,9 @@ class FrameState:
             support).
         direction_confirmed: PnP's result confirmed E's rejected turn (``gate.confirm_direction_by_pnp_deg``): the
             retry's E direction is accepted if it agrees with PnP's too.
+        gated_length: the length (metres) of this frame's first result that the length gate rejected (None: none).
+        confirmed_lengths: the earlier frames' rejected lengths that this frame's length confirmed
+            (``confirm_length_frames``): the gate's expectation restarts from them and this frame's length.
         measured_direction: the first translation direction (3,) a tracker measured on this frame, accepted or not
             (what ``tracker.motion=auto`` judges from); measured_parallax: the image's median motion (pixels) beyond
             that result's rotation where no E-tracker ran (``tracker.mode=pnp``; else E's parallax is used).
@@ -135,6 +138,8 @@ class FrameState:
     gated_direction: torch.Tensor | None = None
     rejected_directions: dict[str, torch.Tensor] = field(default_factory=dict)
     direction_confirmed: bool = False
+    gated_length: float | None = None
+    confirmed_lengths: list[float] | None = None
     measured_direction: torch.Tensor | None = None
     measured_parallax: float | None = None
 
@@ -328,6 +333,9 @@ class VisualOdometry:
         # the image's motion beyond the rotation, as the length gate measures it: tells a stop from a slow step
         parallax = None if T_cur_prev is None else image_parallax_px(st.pts_prev[0][rows], st.pts_cur[0][rows],
                                                                      T_cur_prev[:3, :3], st.K[0])
+        pace_confirmed = st.confirmed_lengths is not None and T_cur_prev is not None
+        if pace_confirmed:  # a new pace: the gate expects it from now on
+            self.fusion.expect_lengths(st.confirmed_lengths)
         self.fusion.end_frame(T_cur_prev, T_prev_cur, diag.tracker, st.estimate, st.pts_prev[0], st.pts_cur[0],
                               rows & e_res.inliers[0] if used_e else rows, st.K[0], parallax)
         gated_out = diag.gate_rejected and diag.tracker == TrackerUsed.constant_motion
@@ -337,6 +345,12 @@ class VisualOdometry:
         self.fusion.gated_directions = (
             [*self.fusion.gated_directions, st.gated_direction][1 - int(self.motion.settings.confirm_direction_frames):]
             if gated_out and st.gated_direction is not None else [])
+        # the lengths the length gate rejected on consecutive frames, whatever each frame ended as (E may have gone
+        # on with the filter's predicted length): the last confirm_length_frames - 1 of them
+        n_length = self.motion.settings.confirm_length_frames
+        self.fusion.gated_lengths = (
+            [*self.fusion.gated_lengths, st.gated_length][1 - int(n_length):]
+            if n_length and st.gated_length is not None and not pace_confirmed else [])
         if st.gate_overruled and T_cur_prev is not None:  # accepted against the gates: it may be wrong itself
             self.fusion.forget_motion()
         inliers = e_res.inliers[0][rows] if used_e else None
@@ -453,9 +467,9 @@ class VisualOdometry:
             s, st.estimate = est.scale, est
         elif not ok:
             return None, failed
-        too_far = self._gate(st, check_length("E", s, self.fusion.expected_length, cfg.gate,
-                                              image_parallax_px(pi[0][rows], pj[0][rows], R[0], K[0]),
-                                              self.fusion.expectation_settled, self.fusion.motion.length_ratio))
+        too_far = self._gate(st, self._new_length(st, "E", s, check_length(
+            "E", s, self.fusion.expected_length, cfg.gate, image_parallax_px(pi[0][rows], pj[0][rows], R[0], K[0]),
+            self.fusion.expectation_settled, self.fusion.motion.length_ratio)))
         if too_far is not None:
             predicted = None if st.estimate is None else st.estimate.predicted
             if predicted is None or not cfg.scale.temporal:
@@ -560,6 +574,27 @@ class VisualOdometry:
         st.rejected_directions[kind] = direction  # the rejection stands
         return reason
 
+    def _new_length(self, st: FrameState, kind: str, length: float, reason: str | None) -> str | None:
+        """The length gate's verdict ``reason`` on the ``kind`` (``E``, ``PnP``) tracker's ``length`` (metres),
+        overruled when each of the last ``confirm_length_frames - 1`` frames (the motion's settings: off for a car by
+        default, 2 for a hand) had a result rejected by this gate and all those lengths and this one agree (each pair
+        within the gate's ratio): the pace changed for good (:meth:`_finish_frame` restarts the expectation from
+        them)."""
+        if reason is None:
+            return None
+        n = self.motion.settings.confirm_length_frames
+        recent = self.fusion.gated_lengths[1 - int(n):] if n else []
+        ratio = max(self.cfg.gate.max_length_ratio, self.fusion.motion.length_ratio)
+        confirmed = bool(n) and len(recent) == int(n) - 1 and all(max(length, g) <= ratio * min(length, g)
+                                                                  for g in recent)
+        if st.gated_length is None:  # kept for the next frames should this result still fall (another gate)
+            st.gated_length = length
+        if not confirmed:
+            return reason
+        st.diagnostics.add_reason(f"{reason}: accepted, {int(n)} frames in a row agree on the new length")
+        st.confirmed_lengths = list(recent)
+        return None
+
     def _gate(self, st: FrameState, reason: str | None) -> str | None:
         """A gate's verdict on this frame: None (accepted) or the reason; after ``gate.max_consecutive`` frames in a
         row that fell back to constant motion by a gate, the result is accepted (and the reason noted), and the next
@@ -607,9 +642,10 @@ class VisualOdometry:
             _, usable = sample_depth(*lifted, cfg.scale.max_depth, cfg.scale.depth_crop_top)
             support = check_support("PnP", int(nin[0]), int((usable & mask).sum()), cfg.gate)
             reason = self._gate(st, support
-                                or check_length("PnP", length, self.fusion.expected_length, cfg.gate,
-                                                image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K),
-                                                self.fusion.expectation_settled, self.fusion.motion.length_ratio)
+                                or self._new_length(st, "PnP", length, check_length(
+                                    "PnP", length, self.fusion.expected_length, cfg.gate,
+                                    image_parallax_px(pi[mask], pj[mask], T[0, :3, :3], K),
+                                    self.fusion.expectation_settled, self.fusion.motion.length_ratio))
                                 or self._new_direction(st, "PnP", direction, check_direction(
                                     "PnP", direction, self.fusion.expected_direction, length, cfg.gate,
                                     self.fusion.motion.direction_deg)))

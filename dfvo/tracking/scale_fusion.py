@@ -116,6 +116,7 @@ class ScaleFusion:
         self.expected_direction: torch.Tensor | None = None
         self.rejections = 0
         self.gated_directions: list[torch.Tensor] = []  # rejected by the direction gate, consecutive frames
+        self.gated_lengths: list[float] = []  # rejected by the length gate, consecutive frames
         self.motion.reset()
         self._height_unit: float | None = None
         self._prior = FilterState()
@@ -238,6 +239,12 @@ class ScaleFusion:
         self.middle = None
         if T_cur_prev is not None and self.cfg.scale.temporal and length >= self.cfg.scale_filter.min_length:
             self.middle = middle_depths(T_cur_prev, K, pts_prev, pts_cur, rows, self.cfg.scale_filter.min_parallax_deg)
+
+    def expect_lengths(self, lengths: list[float]) -> None:
+        """A new pace confirmed by consecutive frames (``gate.confirm_length_frames``): the gate's expected length
+        restarts from ``lengths`` (metres; :meth:`end_frame` then adds this frame's), as a sequence's first frames
+        (its warm-up ratio until ``gate.length_window`` lengths are known)."""
+        self._recent = [float(v) for v in lengths][-int(self.cfg.gate.length_window):]
 
     def forget_motion(self) -> None:
         """After a result accepted against the gates (it may be wrong itself): the gates judge the next frame by no

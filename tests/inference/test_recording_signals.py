@@ -1,4 +1,5 @@
-"""A signal during one frame's writes is kept until they are done (the pose file and the summary count the same frames)."""
+"""A signal during one frame's writes is kept until they are done (the pose file and the summary count the same
+frames)."""
 
 from __future__ import annotations
 

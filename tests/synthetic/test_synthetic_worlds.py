@@ -101,7 +101,7 @@ def test_highway_traffic_moves_on_its_own(highway: SyntheticWorld) -> None:
 
 
 @pytest.mark.parametrize("scenario,kwargs", [("drive", {"speed": 2.0}), ("highway", {}), ("city", {"speed": 0.8}),
-                                             ("handheld", {"speed": 0.05})])
+                                             ("handheld", {"speed": 0.05}), ("handheld_planar", {"speed": 0.05})])
 def test_frame_skip_flow_is_exact(scenario: str, kwargs: dict) -> None:
     world = SyntheticWorld(seed=7, num_frames=6, height=H, width=W, scenario=scenario, **kwargs)
     i = 1
@@ -193,6 +193,40 @@ def test_handheld_world_moves_like_a_hand_over_a_desk() -> None:
         assert (centre @ normal).item() == pytest.approx(clearance[k], abs=2e-3)
         down_in_camera = torch.from_numpy(P[k, :3, :3].T @ np.array([0.0, 1.0, 0.0]))  # world y in camera axes
         assert float(normal @ down_in_camera) > math.cos(math.radians(0.5))
+
+
+def test_planar_handheld_world_is_one_plane_seen_by_a_hand() -> None:
+    """The planar hand-held world: every pixel of every frame is the desk (no sky, no object), its back-projected
+    depth lies on the world plane ``y = CAMERA_HEIGHT`` to a millimetre, the camera looks 40-80 deg down at it from
+    0.3-0.8 m, and the hand stops dead and turns about every axis as in the corner world (same motion model)."""
+    from dfvo.synthetic.handheld import HEIGHT_RANGE, PLANAR_PITCH_RANGE
+
+    world = SyntheticWorld(seed=3, num_frames=80, height=H, width=W, scenario="handheld_planar")
+    P = world.poses().numpy()
+    names = world.segment_names()
+    steps = np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1)
+    still = np.array([names[k] == "still" and names[k + 1] == "still" for k in range(len(steps))])
+    assert still.any() and (steps[still] == 0).all() and (steps[~still] > 0).mean() > 0.9
+    rel = np.stack([P[k, :3, :3].T @ P[k + 1, :3, :3] for k in range(len(P) - 1)])
+    rotvec = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], 1) / 2
+    # turns about every camera axis (about its y less: the world's yaw lies mostly along the pitched-down camera's z)
+    assert (np.abs(rotvec).max(0) > math.radians(0.2)).all() and np.linalg.norm(rotvec, axis=1).max() > math.radians(2)
+    # the optical axis (camera z in world axes) points down (world +y) by the pitch
+    pitch = np.degrees(np.arcsin(P[:, 1, 2]))
+    lo, hi = sorted(-math.degrees(a) for a in PLANAR_PITCH_RANGE)
+    assert (pitch >= lo - 5).all() and (pitch <= hi + 5).all() and pitch.max() - pitch.min() > 5
+    clearance = CAMERA_HEIGHT - P[:, 1, 3]
+    assert (clearance >= HEIGHT_RANGE[0] - 0.07).all() and (clearance <= HEIGHT_RANGE[1] + 0.07).all()
+    for k in (0, 25, 50, 79):
+        assert bool((world.view(k).ids == 0).all())  # the desk alone
+        depth = world.depth(k).reshape(1, -1)
+        pts = backproject_points(pixel_grid(H, W).reshape(1, -1, 2), depth, world.intrinsics()[None])[0].double()
+        y_world = pts @ torch.from_numpy(P[k, 1, :3]) + P[k, 1, 3]  # world y of every pixel's point
+        assert float((y_world - CAMERA_HEIGHT).abs().max()) < 1e-3
+    # textured: the image differs from its own 8x8 block means (detail finer than 8 px) and varies across the view
+    img = world.image(10)[None]
+    coarse = F.interpolate(F.avg_pool2d(img, 8), scale_factor=8)
+    assert float(img.std()) > 0.1 and float((img - coarse).abs().mean()) > 0.01
 
 
 def test_speed_range_and_turns() -> None:

@@ -47,3 +47,19 @@ def handheld_exact() -> tuple[torch.Tensor, ...]:
     of 10-40 cm: the direction gate applies): forward and backward flows (15,2,H,W), depths (16,1,H,W), K (3,3),
     poses T_w_c (16,4,4); rendered once."""
     return _handheld_exact()
+
+
+@cache
+def _planar_exact() -> tuple[torch.Tensor, ...]:
+    w = SyntheticWorld(seed=1003, num_frames=44, scenario="handheld_planar", height=96, width=320)
+    frames = [w.render(i, right=False) for i in range(44)]
+    return (torch.stack([f["flow_fwd"] for f in frames[:-1]]), torch.stack([f["flow_bwd"] for f in frames[:-1]]),
+            torch.stack([f["depth"] for f in frames]), w.intrinsics(), w.poses())
+
+
+@pytest.fixture(scope="session")
+def planar_exact() -> tuple[torch.Tensor, ...]:
+    """The planar hand-held world (seed 1003: the hand slows 3x at frames 16 and 34 and keeps its new pace; 44 frames,
+    96x320; every pixel on the desk) with exact flows and depth: forward and backward flows (43,2,H,W), depths
+    (44,1,H,W), K (3,3), poses T_w_c (44,4,4); rendered once."""
+    return _planar_exact()

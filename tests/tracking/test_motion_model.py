@@ -123,7 +123,7 @@ def test_auto_judges_a_hand_and_takes_its_settings(handheld_exact: tuple[torch.T
     report = judge.report()
     assert judge.motion == "handheld" and report["median_off_axis_deg"] > 40.0
     assert report["settings"] == {"confirm_direction_frames": 2, "confirm_direction_by_pnp_deg": 45.0,
-                                  "planar": "homography"}
+                                  "planar": "homography", "confirm_length_frames": 2}
     first = judge.judged_at  # the frame index that completed the judgement; the next frames run a hand's settings
     assert first is not None and first <= 8
     cm = {m: [str(r.diagnostics.tracker) == "constant_motion" for r in res] for m, res in results.items()}

@@ -9,7 +9,7 @@ import torch
 import dfvo.tracking.odometry as odometry
 from dfvo.synthetic import CAMERA_HEIGHT, SyntheticWorld
 from dfvo.tracking import TrackerConfig, VisualOdometry
-from dfvo.tracking.config import CameraHeightConfig, GateConfig, RoadPlaneConfig, ScaleConfig
+from dfvo.tracking.config import CameraHeightConfig, GateConfig, HandheldConfig, RoadPlaneConfig, ScaleConfig
 from dfvo.tracking.gates import check_length, check_support, image_parallax_px
 from dfvo.tracking.ground_plane import fit_road_plane
 from dfvo.tracking.scale_filter import ScaleFilter
@@ -383,3 +383,34 @@ def test_a_turn_that_pnp_confirms_in_the_same_frame_is_accepted(handheld_exact: 
     assert confirmed[None] == [] and len(confirmed[30.0]) >= 1, confirmed
     assert all(trackers[None][k] == "constant_motion" and trackers[30.0][k] == "E" for k in confirmed[30.0])
     assert max(errors[30.0]) < 1.0, errors[30.0]  # what the confirmation accepted is the true motion
+
+
+def test_a_new_pace_confirmed_by_consecutive_frames_is_accepted(planar_exact: tuple[torch.Tensor, ...]) -> None:
+    """The planar hand-held world with exact flow and depth: where the hand slows threefold or more and keeps its new
+    pace (frames 14 and 33), the length gate rejects the true, shorter lengths of the homography and of PnP frame
+    after frame (constant motion at the old pace, up to ``max_consecutive`` frames). With a hand's
+    ``confirm_length_frames=2`` the second frame that agrees is accepted and the gate expects the new pace from then
+    on; each length so accepted is the true one (exact inputs), and every direction is the true one either way.
+    (What stays wrong: the first frame of each change, and the frames where the scale filter itself gates the true
+    observation out and uses its prediction until ``scale_filter.max_rejections``.)"""
+    ff, fb, d, K, poses = planar_exact
+    true = torch.linalg.inv(poses[:-1]) @ poses[1:]
+    runs = {}
+    for confirm in (None, 2):
+        cfg = TrackerConfig(scale=ScaleConfig(camera_height=None), motion="handheld",
+                            handheld=HandheldConfig(confirm_length_frames=confirm))
+        runs[confirm] = VisualOdometry(cfg).run(ff, fb, d[:-1], K, depths_next=d[1:])
+    ratio = {c: [float(r.T_prev_cur[:3, 3].norm() / true[k, :3, 3].norm().clamp_min(1e-12)) for k, r in enumerate(res)]
+             for c, res in runs.items()}
+    moving = [k for k in range(len(true)) if float(true[k, :3, 3].norm()) > 1e-3]
+    wrong = {c: [k for k in moving if abs(r[k] - 1.0) > 0.1] for c, r in ratio.items()}  # length off by > 10 %
+    cm = {c: sum(r.diagnostics.tracker == "constant_motion" for r in res) for c, res in runs.items()}
+    assert len(wrong[None]) >= 18 and len(wrong[2]) <= 12 and cm[2] <= cm[None] - 10, (wrong, cm)
+    confirmed = [k for k, r in enumerate(runs[2]) if "agree on the new length" in (r.diagnostics.fallback_reason or "")]
+    assert len(confirmed) >= 2 and all(runs[2][k - 1].diagnostics.tracker == "constant_motion" for k in confirmed)
+    assert all(abs(ratio[2][k] - 1.0) < 0.02 for k in confirmed), [ratio[2][k] for k in confirmed]
+    for c, res in runs.items():
+        for k in moving:
+            if res[k].diagnostics.tracker != "constant_motion":
+                t, t_true = res[k].T_prev_cur[:3, 3].double(), true[k, :3, 3]
+                assert float((t @ t_true) / (t.norm() * t_true.norm())) > math.cos(math.radians(1.0)), (c, k)
