@@ -111,7 +111,8 @@ class FrameState:
             retry's E direction is accepted if it agrees with PnP's too.
         gated_length: the length (metres) of this frame's first result that the length gate rejected (None: none).
         confirmed_lengths: the earlier frames' rejected lengths that this frame's length confirmed
-            (``confirm_length_frames``): the gate's expectation restarts from them and this frame's length.
+            (``confirm_length_frames``): the gate's expectation restarts from them and this frame's length, when the
+            frame's pose is the result of the tracker that confirmed them (``confirmed_by``: ``E`` or ``PnP``).
         measured_direction: the first translation direction (3,) a tracker measured on this frame, accepted or not
             (what ``tracker.motion=auto`` judges from); measured_parallax: the image's median motion (pixels) beyond
             that result's rotation where no E-tracker ran (``tracker.mode=pnp``; else E's parallax is used).
@@ -140,6 +141,7 @@ class FrameState:
     direction_confirmed: bool = False
     gated_length: float | None = None
     confirmed_lengths: list[float] | None = None
+    confirmed_by: str | None = None
     measured_direction: torch.Tensor | None = None
     measured_parallax: float | None = None
 
@@ -333,7 +335,8 @@ class VisualOdometry:
         # the image's motion beyond the rotation, as the length gate measures it: tells a stop from a slow step
         parallax = None if T_cur_prev is None else image_parallax_px(st.pts_prev[0][rows], st.pts_cur[0][rows],
                                                                      T_cur_prev[:3, :3], st.K[0])
-        pace_confirmed = st.confirmed_lengths is not None and T_cur_prev is not None
+        pace_confirmed = (st.confirmed_lengths is not None and T_cur_prev is not None
+                          and str(diag.tracker) == st.confirmed_by)
         if pace_confirmed:  # a new pace: the gate expects it from now on
             self.fusion.expect_lengths(st.confirmed_lengths)
         self.fusion.end_frame(T_cur_prev, T_prev_cur, diag.tracker, st.estimate, st.pts_prev[0], st.pts_cur[0],
@@ -592,7 +595,7 @@ class VisualOdometry:
         if not confirmed:
             return reason
         st.diagnostics.add_reason(f"{reason}: accepted, {int(n)} frames in a row agree on the new length")
-        st.confirmed_lengths = list(recent)
+        st.confirmed_lengths, st.confirmed_by = list(recent), kind
         return None
 
     def _gate(self, st: FrameState, reason: str | None) -> str | None:
