@@ -20,11 +20,10 @@ CORNER_RADIUS = 10.0  # radius of the street centre line in a 90-degree turn (de
 LANE = 1.8  # lateral offset of the camera's lane centre (oncoming lane at -LANE)
 PARKING = 4.6  # lateral offset of parked cars
 PLANAR_LATERAL = 5.0  # lateral offset of the camera while it faces the right facade
-SCENARIOS = ("drive", "still", "rotation", "planar", "moving_car", "straight", "city", "highway", "handheld",
-             "handheld_planar")
-# built here; "highway" is :mod:`dfvo.synthetic.highway`, "handheld" and "handheld_planar"
-# :mod:`dfvo.synthetic.handheld`
-STREET_SCENARIOS = tuple(s for s in SCENARIOS if s not in ("highway", "handheld", "handheld_planar"))
+HANDHELD_SCENARIOS = ("handheld", "handheld_planar")  # built by :mod:`dfvo.synthetic.handheld`
+SCENARIOS = ("drive", "still", "rotation", "planar", "moving_car", "straight", "city", "highway", *HANDHELD_SCENARIOS)
+# built here but "highway" (:mod:`dfvo.synthetic.highway`) and the hand-held ones
+STREET_SCENARIOS = tuple(s for s in SCENARIOS if s not in ("highway", *HANDHELD_SCENARIOS))
 CITY_SPEED = (0.4, 1.5)  # default cruise speed range of the "city" scenario, m/frame
 TURN_RATE_DEG = (5.0, 10.0)  # yaw rate drawn per world for street corners once a speed is set (deg/frame)
 TURN_RADIUS = (5.0, 12.0)  # limits of the corner radius (street centre line) once a speed is set (m)

@@ -17,7 +17,7 @@ from dfvo.synthetic.highway_scene import build_highway_scene
 from dfvo.synthetic.render import SKY_DEPTH, View, camera_rays, cast, flow_between
 from dfvo.synthetic.scene import build_scene, rot_y
 from dfvo.synthetic.shading import shade_views
-from dfvo.synthetic.trajectory import SCENARIOS, make_trajectory
+from dfvo.synthetic.trajectory import HANDHELD_SCENARIOS, SCENARIOS, make_trajectory
 
 __all__ = ["KITTI_K", "KITTI_HW", "SyntheticWorld"]
 
@@ -91,7 +91,7 @@ class SyntheticWorld:
         if scenario == "highway":
             self._traj = make_highway_trajectory(int(num_frames), self.seed, speed)
             self._scene = build_highway_scene(self._traj, self.seed)
-        elif scenario in ("handheld", "handheld_planar"):
+        elif scenario in HANDHELD_SCENARIOS:
             planar = scenario == "handheld_planar"
             self._traj = make_handheld_trajectory(int(num_frames), self.seed, speed, planar=planar)
             self._scene = build_handheld_scene(self._traj, self.seed, planar=planar)

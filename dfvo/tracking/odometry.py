@@ -587,7 +587,7 @@ class VisualOdometry:
             return None
         n = self.motion.settings.confirm_length_frames
         recent = self.fusion.gated_lengths[1 - int(n):] if n else []
-        ratio = max(self.cfg.gate.max_length_ratio, self.fusion.motion.length_ratio)
+        ratio = self.fusion.motion.length_ratio  # the gate's own: max_length_ratio, or the sequence's wider one
         confirmed = bool(n) and len(recent) == int(n) - 1 and all(max(length, g) <= ratio * min(length, g)
                                                                   for g in recent)
         if st.gated_length is None:  # kept for the next frames should this result still fall (another gate)
