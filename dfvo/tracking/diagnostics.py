@@ -53,6 +53,11 @@ class FrameDiagnostics:
         pnp_success: PnP's result (None when PnP did not run).
         homography_motion: the E-tracker's R and direction came from the homography's decomposition (a planar scene,
             ``tracker.model_selection.planar=homography``).
+        off_axis_deg: the angle (degrees, 0-90) between the first translation a tracker measured on this frame
+            (accepted or not) and the optical axis, when the image moved ``tracker.motion_auto.min_parallax_px`` or
+            more beyond the rotation (None: not measured): what ``tracker.motion=auto`` judges from.
+        elevation_deg: the same translation's angle (degrees, 0-90) to the camera's horizontal plane (x-z): what
+            ``tracker.motion=auto`` revises a car's verdict from.
         selection_failed: too few consistent correspondences (constant motion).
         fallback_reason: why the E-tracker's result was not used (None when it was), including the plausibility gates'
             reasons; on an E frame whose scale is the temporal filter's prediction, why.
@@ -87,6 +92,8 @@ class FrameDiagnostics:
     gate_rejected: bool = False
     pnp_success: bool | None = None
     homography_motion: bool = False
+    off_axis_deg: float | None = None
+    elevation_deg: float | None = None
     selection_failed: bool = False
     fallback_reason: str | None = None
     window_tracks: int | None = None

@@ -10,7 +10,7 @@ Convention:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -42,8 +42,10 @@ class ETrackerResult:
             inliers): what the translation shows in the image.
         valid: (B,) bool, E usable. reasons: why a frame's E is not usable (None when valid).
         homography: the decompositions of the GRIC homography (when a motion the run may use has ``planar=
-            homography``: :func:`dfvo.tracking.motion_model.may_use_homography`; else None),
-            homography_inliers: (B,N) its RANSAC inliers (None likewise).
+            homography``: :func:`dfvo.tracking.motion_model.may_use_homography`; else None, and
+            :meth:`with_homography` decomposes it when needed), homography_inliers: (B,N) its RANSAC inliers among
+            the valid rows; homography_model: (B,3,3) the homography itself (both None unless model selection is
+            GRIC).
     """
 
     R: torch.Tensor
@@ -59,6 +61,7 @@ class ETrackerResult:
     reasons: list[str | None]
     homography: HomographyDecomposition | None = None
     homography_inliers: torch.Tensor | None = None
+    homography_model: torch.Tensor | None = None
 
     def pair(self, b: int) -> ETrackerResult:
         """Pair ``b`` of the batch as a result of batch size 1 (views of the tensors, no copy)."""
@@ -69,7 +72,18 @@ class ETrackerResult:
                               self.valid[sl], [self.reasons[b]],
                               None if h is None else HomographyDecomposition(h.R[sl], h.t_over_d[sl], h.n[sl],
                                                                               h.in_front[sl]),
-                              None if self.homography_inliers is None else self.homography_inliers[sl])
+                              None if self.homography_inliers is None else self.homography_inliers[sl],
+                              None if self.homography_model is None else self.homography_model[sl])
+
+    def with_homography(self, pts_i: torch.Tensor, pts_j: torch.Tensor, K: torch.Tensor) -> ETrackerResult:
+        """This result with the homography decomposed (:func:`dfvo.geometry.homography.decompose_homography` of
+        ``homography_model`` on the same rows ``pts_i``, ``pts_j`` (B,N,2) float64, ``K`` (B,3,3)): for a pair
+        whose motion turned planar-capable after its batch was tracked (``tracker.motion=auto``'s revision).
+        Unchanged when it is decomposed already or no homography was fitted."""
+        if self.homography is not None or self.homography_model is None:
+            return self
+        return replace(self, homography=decompose_homography(self.homography_model, K, pts_i, pts_j,
+                                                             self.homography_inliers))
 
 
 def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor, K: torch.Tensor,
@@ -110,12 +124,13 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
                                                                   mask & ransac.inliers, sel.residual_floor_px)
                                  >= sel.min_homography_residual_ratio)
         pnp_wanted = pnp_wanted & ~visible
-    decomposition, h_inliers = None, None
+    decomposition, h_inliers, h_model = None, None, None
     if homography is None:
         homography = may_use_homography(cfg)
-    if sel.method == ModelSelectionMethod.gric and homography:
-        h_inliers = mask & H.inliers
-        decomposition = decompose_homography(H.model, K, pts_i, pts_j, h_inliers)
+    if sel.method == ModelSelectionMethod.gric:
+        h_inliers, h_model = mask & H.inliers, H.model
+        if homography:
+            decomposition = decompose_homography(H.model, K, pts_i, pts_j, h_inliers)
     reasons: list[str | None] = []
     valid = torch.zeros(B, dtype=torch.bool, device=pts_i.device)
     for b in range(B):
@@ -132,7 +147,7 @@ def track_essential(pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor
             reasons.append(None)
             valid[b] = True
     return ETrackerResult(R, t, ransac.model, ransac.inliers, ransac.num_inliers, cheir, g_e, g_h, parallax, valid,
-                         reasons, decomposition, h_inliers)
+                         reasons, decomposition, h_inliers, h_model)
 
 
 def essential_scale(R: torch.Tensor, t: torch.Tensor, pts_i: torch.Tensor, pts_j: torch.Tensor, mask: torch.Tensor,

@@ -8,7 +8,10 @@ the hand-held cases (``handheld_markers``, the synthetic hand-held world's seeds
 
 Until the judgement the tracker runs a car's settings, so a car's poses are those of ``tracker.motion=car`` frame for
 frame; a hand-held judgement switches to :class:`dfvo.tracking.config.HandheldConfig`'s for the rest of the
-sequence (it is made once: a car does not become a hand).
+sequence (a car does not become a hand). A car's verdict is revised (``motion_auto.revise_frames``): a hand whose
+first moves ran along the optical axis, judged a car, turns hand-held when its latest measured translations leave
+the camera's horizontal plane, which a car's never do (a car may move off its optical axis: the synthetic drive
+world's sideways steps, 73-86 deg off it, lie in that plane).
 
 Convention: a direction is ``T_prev_cur``'s translation (3,) in the earlier camera (x right, y down, z forward),
 any length.
@@ -16,7 +19,9 @@ any length.
 
 from __future__ import annotations
 
+import math
 import statistics
+from collections import deque
 from dataclasses import asdict, dataclass
 
 import torch
@@ -24,7 +29,8 @@ import torch
 from dfvo.tracking.config import ModelSelectionMethod, MotionModel, PlanarMotion, TrackerConfig
 from dfvo.tracking.gates import angle_deg
 
-__all__ = ["MotionSettings", "MotionJudge", "motion_settings", "may_use_homography", "off_axis_deg"]
+__all__ = ["MotionSettings", "MotionJudge", "motion_settings", "may_use_homography", "off_axis_deg",
+           "elevation_deg"]
 
 
 @dataclass(frozen=True)
@@ -62,9 +68,20 @@ def off_axis_deg(direction: torch.Tensor) -> float:
     return min(angle, 180.0 - angle)
 
 
+def elevation_deg(direction: torch.Tensor) -> float:
+    """Angle (degrees, 0-90) between a translation ``direction`` (3,) and the camera's horizontal plane (x-z), up or
+    down; NaN for a zero vector."""
+    norm = float(direction.norm())
+    if not norm > 0.0:
+        return float("nan")
+    return math.degrees(math.asin(min(1.0, abs(float(direction[1])) / norm)))
+
+
 class MotionJudge:
     """The motion model in force, frame by frame: ``tracker.motion`` itself, or with ``auto`` a car's until
-    ``motion_auto.frames`` frames have measured a direction, then the judgement (made once per sequence).
+    ``motion_auto.frames`` frames have measured a direction, then the judgement; a car's judgement is revised on
+    every later frame from the last ``motion_auto.revise_frames`` measured directions' elevation until they say
+    hand-held.
 
     Args:
         cfg: the tracker's configuration (``motion``, ``motion_auto``).
@@ -76,8 +93,10 @@ class MotionJudge:
 
     def reset(self) -> None:
         """Forget the sequence: no direction measured, no judgement."""
-        self.angles: list[float] = []
+        self.angles: list[float] = []  # the first judgement's angles to the optical axis
+        self.elevations: deque[float] = deque(maxlen=int(self.cfg.motion_auto.revise_frames or 1))  # the latest
         self.judged_at: int | None = None  # the frame whose observation completed the judgement
+        self.revised_at: int | None = None  # the frame whose direction turned a car's judgement hand-held
         self.reason: str | None = None
         setting = self.cfg.motion
         self.motion = MotionModel.car if setting == MotionModel.auto else setting
@@ -89,8 +108,10 @@ class MotionJudge:
 
     @property
     def may_use_homography(self) -> bool:
-        """Whether the frames to come may take the homography's decomposition: the motion in force uses it, or
-        ``auto`` has not judged yet and either motion's settings would."""
+        """Whether the frames to come may take the homography's decomposition, so the batched E-tracker computes
+        it: the motion in force uses it, or ``auto`` has not judged yet and either motion's settings would (after a
+        car's verdict a revision inside a batch decomposes its pairs when they need it:
+        :meth:`dfvo.tracking.e_tracker.ETrackerResult.with_homography`)."""
         motions = [MotionModel.car, MotionModel.handheld] if self.deciding else [self.motion]
         return any(motion_settings(self.cfg, m).planar == PlanarMotion.homography for m in motions)
 
@@ -99,27 +120,52 @@ class MotionJudge:
         """``auto`` and not judged yet."""
         return self.cfg.motion == MotionModel.auto and self.judged_at is None
 
-    def observe(self, frame: int, direction: torch.Tensor | None, parallax_px: float | None) -> str | None:
-        """Count frame ``frame``'s measured translation ``direction`` (3,) (None: none measured), taken when its image
-        moved ``parallax_px`` or more beyond the rotation (``motion_auto.min_parallax_px``); returns the judgement's
-        message on the frame that makes it, else None. Does nothing once judged or unless ``tracker.motion=auto``."""
+    @property
+    def revisable(self) -> bool:
+        """``auto`` judged a car, and ``motion_auto.revise_frames`` may still turn it hand-held."""
+        return (self.cfg.motion == MotionModel.auto and self.judged_at is not None and self.motion == MotionModel.car
+                and self.cfg.motion_auto.revise_frames is not None)
+
+    def observe(self, frame: int, direction: torch.Tensor | None,
+                parallax_px: float | None) -> tuple[float, float] | None:
+        """Count frame ``frame``'s measured translation ``direction`` (3,) (the first result a tracker measured,
+        accepted or not; None: none), taken when its image moved ``parallax_px`` or more beyond the rotation
+        (``motion_auto.min_parallax_px``). With ``tracker.motion=auto`` it judges the motion when this frame completes
+        ``motion_auto.frames`` (the median angle to the optical axis), and after a car's verdict revises it on every
+        frame from the last ``motion_auto.revise_frames`` counted directions (the median angle to the camera's
+        horizontal plane); the verdict and any revision in ``reason``.
+
+        Returns:
+            The direction's angles (degrees, 0-90) to the optical axis and to the camera's horizontal plane when it
+            counts (any ``tracker.motion``; the frame's diagnostics ``off_axis_deg``, ``elevation_deg``), else None.
+        """
         a = self.cfg.motion_auto
-        if not self.deciding or direction is None or parallax_px is None or not parallax_px >= a.min_parallax_px:
+        if direction is None or parallax_px is None or not parallax_px >= a.min_parallax_px:
             return None
-        angle = off_axis_deg(direction)
+        angle, elevation = off_axis_deg(direction), elevation_deg(direction)
         if angle != angle:
             return None
-        self.angles.append(angle)
-        if len(self.angles) < int(a.frames):
-            return None
-        median = statistics.median(self.angles)
-        self.judged_at = frame
-        self.motion = MotionModel.handheld if median > float(a.off_axis_deg) else MotionModel.car
-        side = ">" if self.motion == MotionModel.handheld else "<="
-        self.reason = (f"tracker.motion=auto: {self.motion.value} from frame {frame + 1} on (the median angle between "
-                       f"the translation and the optical axis over {len(self.angles)} frames is {median:.1f} deg "
-                       f"{side} motion_auto.off_axis_deg={float(a.off_axis_deg):g})")
-        return self.reason
+        limit = float(a.off_axis_deg)
+        self.elevations.append(elevation)
+        if self.deciding:
+            self.angles.append(angle)
+            if len(self.angles) == int(a.frames):
+                median = statistics.median(self.angles)
+                self.judged_at = frame
+                self.motion = MotionModel.handheld if median > limit else MotionModel.car
+                side = ">" if self.motion == MotionModel.handheld else "<="
+                self.reason = (f"tracker.motion=auto: {self.motion.value} from frame {frame + 1} on (the median angle "
+                               f"between the translation and the optical axis over {len(self.angles)} frames is "
+                               f"{median:.1f} deg {side} motion_auto.off_axis_deg={limit:g})")
+        elif self.revisable and len(self.elevations) == self.elevations.maxlen:
+            median = statistics.median(self.elevations)
+            if median > limit:
+                self.revised_at = frame
+                self.motion = MotionModel.handheld
+                self.reason = (f"{self.reason}; revised: handheld from frame {frame + 1} on (the median angle between "
+                               f"the last {len(self.elevations)} translations and the camera's horizontal plane is "
+                               f"{median:.1f} deg > motion_auto.off_axis_deg={limit:g})")
+        return angle, elevation
 
     def report(self) -> dict[str, object]:
         """``summary.json``'s ``motion``: the setting, the motion the run ended with and its settings (``planar`` is
@@ -128,9 +174,11 @@ class MotionJudge:
         return {"setting": self.cfg.motion.value, "motion": self.motion.value,
                 "settings": {k: (v.value if hasattr(v, "value") else v) for k, v in asdict(self.settings).items()},
                 "judged_from_frame": None if self.judged_at is None else self.judged_at + 1,
+                "revised_from_frame": None if self.revised_at is None else self.revised_at + 1,
                 "frames_measured": len(self.angles),
                 "median_off_axis_deg": round(statistics.median(self.angles), 2) if self.angles else None,
                 "off_axis_deg": [round(a, 1) for a in self.angles],
+                "latest_elevation_deg": [round(e, 1) for e in self.elevations],
                 "reason": self.reason if self.reason is not None else (
                     f"tracker.motion={self.cfg.motion.value}" if self.cfg.motion != MotionModel.auto else
                     f"tracker.motion=auto: not judged ({len(self.angles)} of {int(self.cfg.motion_auto.frames)} "

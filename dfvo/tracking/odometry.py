@@ -363,8 +363,10 @@ class VisualOdometry:
                               st.depth, cfg, log_var, st.depth_next if st.pnp_backwards else None)
         if self.window is not None:  # the emitted step only: the tracker's state above keeps its own
             T_prev_cur = self._window_step(st, T_prev_cur, T_cur_prev is not None, cov, matches)
-        self.motion.observe(diag.frame, st.measured_direction,  # the next frames' motion (auto)
-                            diag.parallax_px if diag.parallax_px is not None else st.measured_parallax)
+        measured = self.motion.observe(diag.frame, st.measured_direction,  # the next frames' motion (auto)
+                                       diag.parallax_px if diag.parallax_px is not None else st.measured_parallax)
+        if measured is not None:
+            diag.off_axis_deg, diag.elevation_deg = measured
         self.T_w = self.T_w @ T_prev_cur
         return FrameResult(self.T_w.clone(), T_prev_cur, diag, matches, cov)
 
@@ -390,8 +392,10 @@ class VisualOdometry:
         reason = e_res.reasons[0]
         if reason is None:
             return self._essential_pose(st)
-        if (e_res.homography is not None and self.motion.settings.planar == PlanarMotion.homography
+        if (e_res.homography_model is not None and self.motion.settings.planar == PlanarMotion.homography
                 and reason.startswith("model selection prefers PnP (GRIC")):
+            # decomposed with its batch, or now: the motion turned hand-held after the batch was tracked
+            st.essential = e_res.with_homography(st.pts_prev, st.pts_cur, st.K)
             T, planar = self._homography_pose(st)
             if planar is not None:
                 diag.add_reason(planar)

@@ -36,13 +36,13 @@ def test_the_judge_counts_measured_frames_with_parallax_and_judges_once() -> Non
     assert judge.motion == "car" and judge.deciding and judge.may_use_homography  # a hand's planar path may come
     assert judge.observe(1, _direction(80.0), 0.5) is None  # too little parallax: a stop's direction is noise
     assert judge.observe(2, None, 3.0) is None  # constant motion, no direction measured
-    assert judge.observe(3, _direction(60.0, 90.0), 3.0) is None
-    assert judge.observe(4, _direction(5.0), 3.0) is None
-    assert judge.motion == "car"  # not judged yet: a car's settings
-    message = judge.observe(5, _direction(30.0, 200.0), 3.0)  # median of 60, 5, 30 = 30 > 25
+    assert judge.observe(3, _direction(60.0, 90.0), 3.0) == pytest.approx((60.0, 60.0))  # counted: its angles
+    assert judge.observe(4, _direction(5.0), 3.0) == pytest.approx((5.0, 0.0))
+    assert judge.motion == "car" and judge.reason is None  # not judged yet: a car's settings
+    judge.observe(5, _direction(30.0, 200.0), 3.0)  # median of 60, 5, 30 = 30 > 25
     assert judge.motion == "handheld" and not judge.deciding and judge.judged_at == 5
-    assert message is not None and "30.0 deg > motion_auto.off_axis_deg=25" in message
-    assert judge.observe(6, _direction(0.0), 9.0) is None and judge.motion == "handheld"
+    assert judge.reason is not None and "30.0 deg > motion_auto.off_axis_deg=25" in judge.reason
+    assert judge.observe(6, _direction(0.0), 9.0) == pytest.approx((0.0, 0.0)) and judge.motion == "handheld"
     report = judge.report()
     assert report["motion"] == "handheld" and report["judged_from_frame"] == 6 and report["frames_measured"] == 3
     assert report["median_off_axis_deg"] == pytest.approx(30.0) and report["off_axis_deg"] == [60.0, 5.0, 30.0]
@@ -50,8 +50,47 @@ def test_the_judge_counts_measured_frames_with_parallax_and_judges_once() -> Non
     assert judge.motion == "car" and judge.deciding and judge.angles == []
     for k, deg in enumerate((2.0, 24.0, 70.0)):  # median 24 <= 25: a car
         judge.observe(k + 1, _direction(deg), 2.0)
-    assert judge.motion == "car" and not judge.deciding
+    assert judge.motion == "car" and not judge.deciding and judge.revisable
     assert not judge.may_use_homography  # a car's planar pairs go to PnP: the E-tracker skips the decomposition
+
+
+def test_a_cars_verdict_is_revised_when_the_camera_leaves_its_horizontal_plane() -> None:
+    """Hand-derived, ``frames=3``, ``revise_frames=4``: a car's verdict (median angle to the optical axis of 2, 24,
+    10 = 10) is revised on every measured frame from the last four directions' angles to the camera's horizontal
+    plane (x-z; a direction ``d`` off the axis at azimuth 90 deg rises ``d``, at 0 deg none): 2, 24, 0 then a
+    sideways step 80 deg off the axis but level (a car's lane change or skid): [2, 24, 0, 0] median 1; 40 up:
+    [24, 0, 0, 40] 12; a stop does not count; 40 up: [0, 0, 40, 40] 20; 50 down: [0, 40, 40, 50] 40 > 25:
+    hand-held from that frame on, and then final. ``revise_frames=None``: the first verdict is final."""
+    cfg = TrackerConfig(motion_auto=MotionAutoConfig(frames=3, off_axis_deg=25.0, min_parallax_px=1.0,
+                                                     revise_frames=4))
+    judge = MotionJudge(cfg)
+    for k, (deg, azimuth) in enumerate(((2.0, 90.0), (24.0, 90.0), (10.0, 0.0), (80.0, 0.0), (40.0, 90.0))):
+        judge.observe(k + 1, _direction(deg, azimuth), 2.0)
+    assert judge.motion == "car" and judge.judged_at == 3 and judge.revisable
+    assert list(judge.elevations) == pytest.approx([24.0, 0.0, 0.0, 40.0], abs=1e-9)
+    assert judge.observe(6, _direction(70.0, 90.0), 0.5) is None and judge.motion == "car"  # too little parallax
+    judge.observe(7, _direction(40.0, 90.0), 2.0)  # median of 0, 0, 40, 40 = 20: still a car
+    assert judge.motion == "car" and judge.revised_at is None
+    assert judge.observe(8, _direction(50.0, 270.0), 2.0) == pytest.approx((50.0, 50.0))
+    assert judge.motion == "handheld" and judge.revised_at == 8 and not judge.revisable
+    assert judge.settings.planar == "homography" and judge.may_use_homography
+    for k in range(9, 15):
+        judge.observe(k, _direction(0.0), 5.0)
+    assert judge.motion == "handheld" and judge.revised_at == 8
+    report = judge.report()
+    assert report["judged_from_frame"] == 4 and report["revised_from_frame"] == 9
+    assert report["off_axis_deg"] == [2.0, 24.0, 10.0]  # the first verdict's angles
+    assert "car from frame 4 on" in report["reason"] and "revised: handheld from frame 9 on" in report["reason"]
+    assert "40.0 deg > motion_auto.off_axis_deg=25" in report["reason"]
+    judge.reset()
+    assert judge.revised_at is None and judge.motion == "car" and judge.deciding and len(judge.elevations) == 0
+    final = MotionJudge(TrackerConfig(motion_auto=MotionAutoConfig(frames=3, min_parallax_px=1.0,
+                                                                   revise_frames=None)))
+    for k, deg in enumerate((2.0, 24.0, 10.0, *([80.0] * 12))):
+        final.observe(k + 1, _direction(deg, 90.0), 2.0)
+    assert final.motion == "car" and final.revised_at is None and not final.revisable
+    with pytest.raises(ValueError, match="revise_frames"):
+        MotionAutoConfig(revise_frames=0)
 
 
 @pytest.mark.parametrize("setting", ["car", "handheld"])
@@ -155,3 +194,48 @@ def test_auto_streams_as_it_runs_with_the_verdict_inside_a_batch(handheld_exact:
     verdicts.append((vo.motion.motion, vo.motion.judged_at))
     assert verdicts[0] == ("handheld", 5) and verdicts.count(verdicts[0]) == 3, verdicts
     assert torch.allclose(poses[0], poses[1], atol=1e-9) and torch.allclose(poses[0], poses[2], atol=1e-9)
+
+
+def test_a_hand_first_moving_along_the_axis_is_judged_a_car_then_revised() -> None:
+    """The hand-held world's seed 49 (exact flow, depth 10x too far as in ``handheld_exact``): its first seven moves
+    run 7 deg off the optical axis, the rest 27-53 deg and up or down. ``auto`` judges a car at the 5th measured
+    frame; with the first verdict final (``revise_frames=None``) the car's gates hold 15 frames on constant motion,
+    as ``tracker.motion=car`` does. Revised from the last 10 measured directions' angle to the camera's horizontal
+    plane, the motion turns hand-held once most of them rise or fall, and from the next frame on no frame falls back
+    and E's directions are the true ones (1 deg). The revision inside a batch: batched ``run`` (batch 4) and
+    frame-by-frame ``step`` agree."""
+    n = 26
+    w = SyntheticWorld(seed=49, num_frames=n, scenario="handheld", height=96, width=320)
+    frames = [w.render(i, right=False) for i in range(n)]
+    ff, fb = torch.stack([f["flow_fwd"] for f in frames[:-1]]), torch.stack([f["flow_bwd"] for f in frames[:-1]])
+    d, K, P = torch.stack([f["depth"] for f in frames]) * 10.0, w.intrinsics(), w.poses()
+    results, judges = {}, {}
+    for name, auto in (("car", None), ("final", MotionAutoConfig(revise_frames=None)), ("auto", MotionAutoConfig())):
+        cfg = TrackerConfig(scale=ScaleConfig(camera_height=None), motion="car" if auto is None else "auto",
+                            motion_auto=auto or MotionAutoConfig())
+        vo = VisualOdometry(cfg)
+        results[name] = vo.run(ff, fb, d[:-1], K, depths_next=d[1:])
+        judges[name] = vo.motion
+    cm = {m: [str(r.diagnostics.tracker) == "constant_motion" for r in res] for m, res in results.items()}
+    assert judges["final"].motion == "car" and judges["final"].judged_at is not None
+    assert cm["final"] == cm["car"] and sum(cm["car"]) >= 10, cm
+    auto = judges["auto"]
+    assert auto.motion == "handheld" and auto.judged_at == judges["final"].judged_at
+    assert auto.revised_at is not None and auto.revised_at <= 14, auto.report()
+    assert not any(cm["auto"][auto.revised_at:]) and sum(cm["auto"]) <= sum(cm["car"]) - 8, cm
+    true = torch.linalg.inv(P[:-1].double()) @ P[1:].double()
+    for r, t in zip(results["auto"][auto.revised_at:], true[auto.revised_at:]):
+        assert str(r.diagnostics.tracker) == "E"
+        cos = float(torch.nn.functional.cosine_similarity(r.T_prev_cur[:3, 3], t[:3, 3], dim=0))
+        assert math.degrees(math.acos(min(1.0, cos))) < 1.0
+    measured = [r.diagnostics.off_axis_deg for r in results["auto"]]
+    assert all(a is not None and a < 10.0 for a in measured[:7]) and min(a for a in measured[7:] if a) > 25.0
+    risen = [r.diagnostics.elevation_deg for r in results["auto"]]
+    assert all(e is not None and e < 10.0 for e in risen[:7]), risen
+    cfg = TrackerConfig(scale=ScaleConfig(camera_height=None))
+    batched = VisualOdometry(cfg).run(ff, fb, d[:-1], K, batch_size=4, depths_next=d[1:])
+    vo = VisualOdometry(cfg)
+    stepped = [vo.step(ff[k:k + 1], fb[k:k + 1], d[k:k + 1], K[None], depth_cur=d[k + 1:k + 2]) for k in range(n - 1)]
+    assert vo.motion.revised_at == auto.revised_at
+    for a, b, c in zip(results["auto"], batched, stepped):
+        assert torch.allclose(a.T_w_cur, b.T_w_cur, atol=1e-9) and torch.allclose(a.T_w_cur, c.T_w_cur, atol=1e-9)
