@@ -77,3 +77,22 @@ def test_planar_homography_needs_gric() -> None:
     """planar=homography with the flow-magnitude rule (no homography fitted): one line naming both settings."""
     with pytest.raises(ValueError, match="tracker.model_selection.planar=homography needs method=gric"):
         ModelSelectionConfig(method="flow", planar="homography")
+
+
+def test_a_homography_decomposed_on_demand_equals_the_batchs(planar_world: tuple,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pair whose motion turned hand-held after its batch was tracked (``tracker.motion=auto``'s revision) has its
+    homography decomposed when it needs it (``ETrackerResult.with_homography``): with the batched decomposition
+    withheld from every batch the planar world's poses are those of the batched path, and every frame still takes
+    the homography's motion."""
+    from dfvo.tracking.motion_model import MotionJudge
+
+    ff, fb, depth, K, _ = planar_world
+    cfg = TrackerConfig(scale=ScaleConfig(depth_views=1), camera_height=CameraHeightConfig(estimate=False),
+                        motion="handheld")
+    batched = VisualOdometry(cfg).run(ff, fb, depth, K, batch_size=4)
+    monkeypatch.setattr(MotionJudge, "may_use_homography", property(lambda self: False))
+    on_demand = VisualOdometry(cfg).run(ff, fb, depth, K, batch_size=4)
+    assert all(r.diagnostics.homography_motion for r in on_demand)
+    for a, b in zip(batched, on_demand):
+        assert torch.allclose(a.T_w_cur, b.T_w_cur, atol=1e-9)
