@@ -9,9 +9,9 @@ the hand-held cases (``handheld_markers``, the synthetic hand-held world's seeds
 Until the judgement the tracker runs a car's settings, so a car's poses are those of ``tracker.motion=car`` frame for
 frame; a hand-held judgement switches to :class:`dfvo.tracking.config.HandheldConfig`'s for the rest of the
 sequence (a car does not become a hand). A car's verdict is revised (``motion_auto.revise_frames``): a hand whose
-first moves ran along the optical axis, judged a car, turns hand-held when its latest measured translations leave
-the camera's horizontal plane, which a car's never do (a car may move off its optical axis: the synthetic drive
-world's sideways steps, 73-86 deg off it, lie in that plane).
+first moves ran along the optical axis (or were measured so), judged a car, turns hand-held when its latest measured
+translations leave both the optical axis and the camera's horizontal plane; a car's never leave the plane (a car
+may move off its optical axis: the synthetic drive world's sideways steps, 73-86 deg off it, lie in that plane).
 
 Convention: a direction is ``T_prev_cur``'s translation (3,) in the earlier camera (x right, y down, z forward),
 any length.
@@ -80,8 +80,7 @@ def elevation_deg(direction: torch.Tensor) -> float:
 class MotionJudge:
     """The motion model in force, frame by frame: ``tracker.motion`` itself, or with ``auto`` a car's until
     ``motion_auto.frames`` frames have measured a direction, then the judgement; a car's judgement is revised on
-    every later frame from the last ``motion_auto.revise_frames`` measured directions' elevation until they say
-    hand-held.
+    every later frame from the last ``motion_auto.revise_frames`` measured directions until they say hand-held.
 
     Args:
         cfg: the tracker's configuration (``motion``, ``motion_auto``).
@@ -94,7 +93,7 @@ class MotionJudge:
     def reset(self) -> None:
         """Forget the sequence: no direction measured, no judgement."""
         self.angles: list[float] = []  # the first judgement's angles to the optical axis
-        self.elevations: deque[float] = deque(maxlen=int(self.cfg.motion_auto.revise_frames or 1))  # the latest
+        self.latest: deque[tuple[float, float]] = deque(maxlen=int(self.cfg.motion_auto.revise_frames or 1))
         self.judged_at: int | None = None  # the frame whose observation completed the judgement
         self.revised_at: int | None = None  # the frame whose direction turned a car's judgement hand-held
         self.reason: str | None = None
@@ -132,8 +131,8 @@ class MotionJudge:
         accepted or not; None: none), taken when its image moved ``parallax_px`` or more beyond the rotation
         (``motion_auto.min_parallax_px``). With ``tracker.motion=auto`` it judges the motion when this frame completes
         ``motion_auto.frames`` (the median angle to the optical axis), and after a car's verdict revises it on every
-        frame from the last ``motion_auto.revise_frames`` counted directions (the median angle to the camera's
-        horizontal plane); the verdict and any revision in ``reason``.
+        frame from the last ``motion_auto.revise_frames`` counted directions (their median angles to the optical axis
+        and to the camera's horizontal plane); the verdict and any revision in ``reason``.
 
         Returns:
             The direction's angles (degrees, 0-90) to the optical axis and to the camera's horizontal plane when it
@@ -146,7 +145,7 @@ class MotionJudge:
         if angle != angle:
             return None
         limit = float(a.off_axis_deg)
-        self.elevations.append(elevation)
+        self.latest.append((angle, elevation))  # the last revise_frames measured directions' angles
         if self.deciding:
             self.angles.append(angle)
             if len(self.angles) == int(a.frames):
@@ -157,14 +156,16 @@ class MotionJudge:
                 self.reason = (f"tracker.motion=auto: {self.motion.value} from frame {frame + 1} on (the median angle "
                                f"between the translation and the optical axis over {len(self.angles)} frames is "
                                f"{median:.1f} deg {side} motion_auto.off_axis_deg={limit:g})")
-        elif self.revisable and len(self.elevations) == self.elevations.maxlen:
-            median = statistics.median(self.elevations)
-            if median > limit:
+        elif self.revisable and len(self.latest) == self.latest.maxlen:
+            off = statistics.median(a for a, _ in self.latest)
+            up = statistics.median(e for _, e in self.latest)
+            if off > limit and up > float(a.revise_elevation_deg):
                 self.revised_at = frame
                 self.motion = MotionModel.handheld
-                self.reason = (f"{self.reason}; revised: handheld from frame {frame + 1} on (the median angle between "
-                               f"the last {len(self.elevations)} translations and the camera's horizontal plane is "
-                               f"{median:.1f} deg > motion_auto.off_axis_deg={limit:g})")
+                self.reason = (f"{self.reason}; revised: handheld from frame {frame + 1} on (over the last "
+                               f"{len(self.latest)} translations the median angle to the optical axis is {off:.1f} "
+                               f"deg > motion_auto.off_axis_deg={limit:g} and to the camera's horizontal plane "
+                               f"{up:.1f} deg > motion_auto.revise_elevation_deg={float(a.revise_elevation_deg):g})")
         return angle, elevation
 
     def report(self) -> dict[str, object]:
@@ -178,7 +179,7 @@ class MotionJudge:
                 "frames_measured": len(self.angles),
                 "median_off_axis_deg": round(statistics.median(self.angles), 2) if self.angles else None,
                 "off_axis_deg": [round(a, 1) for a in self.angles],
-                "latest_elevation_deg": [round(e, 1) for e in self.elevations],
+                "latest_off_axis_elevation_deg": [[round(a, 1), round(e, 1)] for a, e in self.latest],
                 "reason": self.reason if self.reason is not None else (
                     f"tracker.motion={self.cfg.motion.value}" if self.cfg.motion != MotionModel.auto else
                     f"tracker.motion=auto: not judged ({len(self.angles)} of {int(self.cfg.motion_auto.frames)} "

@@ -54,22 +54,25 @@ def test_the_judge_counts_measured_frames_with_parallax_and_judges_once() -> Non
     assert not judge.may_use_homography  # a car's planar pairs go to PnP: the E-tracker skips the decomposition
 
 
-def test_a_cars_verdict_is_revised_when_the_camera_leaves_its_horizontal_plane() -> None:
+def test_a_cars_verdict_is_revised_when_the_camera_leaves_the_axis_and_its_horizontal_plane() -> None:
     """Hand-derived, ``frames=3``, ``revise_frames=4``: a car's verdict (median angle to the optical axis of 2, 24,
-    10 = 10) is revised on every measured frame from the last four directions' angles to the camera's horizontal
-    plane (x-z; a direction ``d`` off the axis at azimuth 90 deg rises ``d``, at 0 deg none): 2, 24, 0 then a
-    sideways step 80 deg off the axis but level (a car's lane change or skid): [2, 24, 0, 0] median 1; 40 up:
-    [24, 0, 0, 40] 12; a stop does not count; 40 up: [0, 0, 40, 40] 20; 50 down: [0, 40, 40, 50] 40 > 25:
-    hand-held from that frame on, and then final. ``revise_frames=None``: the first verdict is final."""
+    10 = 10) is revised on every measured frame from the last four directions' medians of their angle to the axis
+    and to the camera's horizontal plane (x-z; a direction ``d`` off the axis at azimuth 90 deg rises ``d``, at 0 deg
+    not at all). (axis, plane) after each frame: sideways level steps 80 deg off the axis, a car's (a skid, the
+    synthetic drive's sideways steps): (17, 1), then (52, 0): off the axis but level, still a car; a stop does not
+    count; 40 up: (60, 0); 50 down: (65, 20): both above 25 and 10 deg: hand-held from that frame on, and then final.
+    A camera pitched 15 deg down driving forward (15 deg off the axis and out of the plane) stays a car;
+    ``revise_frames=None``: the first verdict is final."""
     cfg = TrackerConfig(motion_auto=MotionAutoConfig(frames=3, off_axis_deg=25.0, min_parallax_px=1.0,
-                                                     revise_frames=4))
+                                                     revise_frames=4, revise_elevation_deg=10.0))
     judge = MotionJudge(cfg)
-    for k, (deg, azimuth) in enumerate(((2.0, 90.0), (24.0, 90.0), (10.0, 0.0), (80.0, 0.0), (40.0, 90.0))):
+    for k, (deg, azimuth) in enumerate(((2.0, 90.0), (24.0, 90.0), (10.0, 0.0), (80.0, 0.0), (80.0, 0.0))):
         judge.observe(k + 1, _direction(deg, azimuth), 2.0)
     assert judge.motion == "car" and judge.judged_at == 3 and judge.revisable
-    assert list(judge.elevations) == pytest.approx([24.0, 0.0, 0.0, 40.0], abs=1e-9)
+    assert [a for a, _ in judge.latest] == pytest.approx([24.0, 10.0, 80.0, 80.0])
+    assert [e for _, e in judge.latest] == pytest.approx([24.0, 0.0, 0.0, 0.0], abs=1e-9)
     assert judge.observe(6, _direction(70.0, 90.0), 0.5) is None and judge.motion == "car"  # too little parallax
-    judge.observe(7, _direction(40.0, 90.0), 2.0)  # median of 0, 0, 40, 40 = 20: still a car
+    judge.observe(7, _direction(40.0, 90.0), 2.0)  # medians 60 and 0: still a car
     assert judge.motion == "car" and judge.revised_at is None
     assert judge.observe(8, _direction(50.0, 270.0), 2.0) == pytest.approx((50.0, 50.0))
     assert judge.motion == "handheld" and judge.revised_at == 8 and not judge.revisable
@@ -81,9 +84,14 @@ def test_a_cars_verdict_is_revised_when_the_camera_leaves_its_horizontal_plane()
     assert report["judged_from_frame"] == 4 and report["revised_from_frame"] == 9
     assert report["off_axis_deg"] == [2.0, 24.0, 10.0]  # the first verdict's angles
     assert "car from frame 4 on" in report["reason"] and "revised: handheld from frame 9 on" in report["reason"]
-    assert "40.0 deg > motion_auto.off_axis_deg=25" in report["reason"]
+    assert "65.0 deg > motion_auto.off_axis_deg=25" in report["reason"]
+    assert "20.0 deg > motion_auto.revise_elevation_deg=10" in report["reason"]
     judge.reset()
-    assert judge.revised_at is None and judge.motion == "car" and judge.deciding and len(judge.elevations) == 0
+    assert judge.revised_at is None and judge.motion == "car" and judge.deciding and len(judge.latest) == 0
+    pitched = MotionJudge(cfg)
+    for k in range(12):
+        pitched.observe(k + 1, _direction(15.0, 90.0), 2.0)
+    assert pitched.motion == "car" and pitched.revised_at is None
     final = MotionJudge(TrackerConfig(motion_auto=MotionAutoConfig(frames=3, min_parallax_px=1.0,
                                                                    revise_frames=None)))
     for k, deg in enumerate((2.0, 24.0, 10.0, *([80.0] * 12))):
@@ -91,6 +99,8 @@ def test_a_cars_verdict_is_revised_when_the_camera_leaves_its_horizontal_plane()
     assert final.motion == "car" and final.revised_at is None and not final.revisable
     with pytest.raises(ValueError, match="revise_frames"):
         MotionAutoConfig(revise_frames=0)
+    with pytest.raises(ValueError, match="revise_elevation_deg"):
+        MotionAutoConfig(revise_elevation_deg=90.0)
 
 
 @pytest.mark.parametrize("setting", ["car", "handheld"])
@@ -200,8 +210,8 @@ def test_a_hand_first_moving_along_the_axis_is_judged_a_car_then_revised() -> No
     """The hand-held world's seed 49 (exact flow, depth 10x too far as in ``handheld_exact``): its first seven moves
     run 7 deg off the optical axis, the rest 27-53 deg and up or down. ``auto`` judges a car at the 5th measured
     frame; with the first verdict final (``revise_frames=None``) the car's gates hold 15 frames on constant motion,
-    as ``tracker.motion=car`` does. Revised from the last 10 measured directions' angle to the camera's horizontal
-    plane, the motion turns hand-held once most of them rise or fall, and from the next frame on no frame falls back
+    as ``tracker.motion=car`` does. Revised from the last 10 measured directions, the motion turns hand-held once
+    most of them are off the axis and rise or fall, and from the next frame on no frame falls back
     and E's directions are the true ones (1 deg). The revision inside a batch: batched ``run`` (batch 4) and
     frame-by-frame ``step`` agree."""
     n = 26
