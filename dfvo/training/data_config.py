@@ -183,7 +183,8 @@ class FlowMixTrainDataConfig(TrainDataConfig):
             the working size ``render_scale`` times larger (640x192) and resized the way inference resizes.
         seeds, num_frames, scenario, speed, frame_skips: the synthetic training worlds (one per seed, below 1000;
             seed s gets ``scenario[s % len]``; ``speed`` m/frame, ``[v]`` or a range ``[lo, hi]`` drawn per world,
-            null: the scenario's), pairs (k, k+s) for every s of ``frame_skips`` (also the KITTI pairs' gaps).
+            null: the scenario's; a car's speed: the hand-held scenarios always move at their own pace), pairs
+            (k, k+s) for every s of ``frame_skips`` (also the KITTI pairs' gaps).
         max_flow: drop synthetic pairs whose largest true flow exceeds this many working-size pixels (null: keep all).
         render_scale: working size / network size. sensor_variation: exposure changes and sensor noise per world.
         device: where the worlds render (``cuda``: on the GPU). cache_dir: the render cache folder (null: render at

@@ -39,6 +39,7 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from dfvo.sources.networks import resize_images
 from dfvo.synthetic import check_training_seeds
+from dfvo.synthetic.trajectory import HANDHELD_SCENARIOS
 from dfvo.training.config import FlowMixTrainDataConfig, FlowMode, FlowPhase, data_config, data_root, model_config
 from dfvo.training.flow_renders import WorldRender, cached_world, heldout_set
 from dfvo.training.sampling import ResumableLoader, ResumableSampler, step_generator
@@ -249,11 +250,12 @@ class FlowMixDataModule(L.LightningDataModule):
         d = self.data
         speed = None if d.speed is None else (float(d.speed[0]) if len(d.speed) == 1 else
                                               (float(d.speed[0]), float(d.speed[1])))
-        return [WorldRender(seed=int(s), scenario=d.scenario[int(s) % len(d.scenario)], speed=speed,
+        scenarios = [d.scenario[int(s) % len(d.scenario)] for s in d.seeds]
+        return [WorldRender(seed=int(s), scenario=sc, speed=None if sc in HANDHELD_SCENARIOS else speed,
                             frames=d.num_frames, size=self.size, scale=d.render_scale,
                             skips=tuple(int(k) for k in d.frame_skips),
                             max_flow=None if d.max_flow is None else float(d.max_flow),
-                            sensor_variation=d.sensor_variation) for s in d.seeds]
+                            sensor_variation=d.sensor_variation) for s, sc in zip(d.seeds, scenarios)]
 
     def _worlds(self) -> Iterator[dict]:
         """The training worlds in seed order (rendered or read from the cache), stopping once

@@ -137,6 +137,20 @@ def test_schedule_is_step_based_per_phase(tmp_path: Path) -> None:
     assert seen == pytest.approx(lrs) and opt["lr_scheduler"]["interval"] == "step"
 
 
+def test_a_cars_speed_leaves_the_hand_held_worlds_at_their_own_pace(tmp_path: Path) -> None:
+    """``data.speed`` (m/frame) is a car's: the driving worlds take it, the hand-held ones move at their own pace
+    (speed null), whatever it says; with ``data.speed=null`` every world is at its own pace."""
+    sup = "model.phases=[{name: sup, steps: 2, lr: 1.0e-4}]"
+    cfg = _cfg(tmp_path, sup, "data.seeds=[0,1,2,3]", "data.scenario=[drive,handheld,highway,handheld_planar]",
+               "data.speed=[0.3,3.0]")
+    renders = FlowMixDataModule(cfg)._renders()
+    assert [(r.scenario, r.speed) for r in renders] == [("drive", (0.3, 3.0)), ("handheld", None),
+                                                        ("highway", (0.3, 3.0)), ("handheld_planar", None)]
+    own = FlowMixDataModule(_cfg(tmp_path, sup, "data.seeds=[0,1]", "data.scenario=[drive,handheld]",
+                                 "data.speed=null"))._renders()
+    assert [r.speed for r in own] == [None, None]
+
+
 def test_render_cache_round_trip_and_the_flow_resizing(tmp_path: Path, world: dict) -> None:
     """A world render is the exact flow of the world block-averaged to the network size; the cache gives it back;
     a file of another format (the retired loop's) or another world is refused with one line naming it."""
