@@ -555,7 +555,8 @@ class MotionAutoConfig:
             synthetic highway whose flow fails); a hand-held camera often moves less than 1 px a frame
             (``handheld_markers``: judged at frame 13 with 0.5, 28 with 1.0).
         revise_frames: after a car's verdict, the last this many measured translations (counted as for ``frames``)
-            are judged again on every frame: when their median angle to the optical axis exceeds ``off_axis_deg``
+            are judged again on every frame that counts one: when their median angle to the optical axis exceeds
+            ``off_axis_deg``
             and their median angle above or below the camera's horizontal plane (x-z) exceeds
             ``revise_elevation_deg``, the motion turns hand-held for the rest of the sequence (a hand whose first
             moves ran along the optical axis, or were measured so). A car moves in that plane whatever it does

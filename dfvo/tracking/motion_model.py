@@ -80,7 +80,8 @@ def elevation_deg(direction: torch.Tensor) -> float:
 class MotionJudge:
     """The motion model in force, frame by frame: ``tracker.motion`` itself, or with ``auto`` a car's until
     ``motion_auto.frames`` frames have measured a direction, then the judgement; a car's judgement is revised on
-    every later frame from the last ``motion_auto.revise_frames`` measured directions until they say hand-held.
+    every later frame that counts a measured direction, from the last ``motion_auto.revise_frames`` of them, until
+    they say hand-held.
 
     Args:
         cfg: the tracker's configuration (``motion``, ``motion_auto``).
@@ -107,10 +108,10 @@ class MotionJudge:
 
     @property
     def may_use_homography(self) -> bool:
-        """Whether the frames to come may take the homography's decomposition, so the batched E-tracker computes
-        it: the motion in force uses it, or ``auto`` has not judged yet and either motion's settings would (after a
-        car's verdict a revision inside a batch decomposes its pairs when they need it:
-        :meth:`dfvo.tracking.e_tracker.ETrackerResult.with_homography`)."""
+        """Whether the next batch's E-tracker decomposes the homography up front: the motion in force uses it, or
+        ``auto`` has not judged yet and either motion's settings would. After a car's verdict it does not, though a
+        revision may come: a pair that needs the decomposition then gets it on demand
+        (:meth:`dfvo.tracking.e_tracker.ETrackerResult.with_homography`)."""
         motions = [MotionModel.car, MotionModel.handheld] if self.deciding else [self.motion]
         return any(motion_settings(self.cfg, m).planar == PlanarMotion.homography for m in motions)
 

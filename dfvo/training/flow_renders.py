@@ -127,7 +127,8 @@ def render_world(w: WorldRender, device: str = "cpu") -> dict[str, object]:
                 flows[key].append(x.cpu())
     if not pairs:
         raise RenderCacheError(f"training world {w.tag}: no frame pair within max_flow={w.max_flow} px; raise "
-                               "data.max_flow or lower data.speed")
+                               "data.max_flow or lower data.speed (a driving world's; a hand-held world moves at "
+                               "its own pace)")
     out: dict[str, object] = {"format": RENDER_FORMAT, "tag": w.tag, "images": images.half().cpu(),
                               "pairs": torch.tensor(pairs, dtype=torch.int64), "scenario": w.scenario,
                               "seed": w.seed}
