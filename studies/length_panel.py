@@ -7,7 +7,10 @@ H.264 file of KITTI 07's frames (``--make-video`` writes one with PyAV), 07 read
 intrinsics only (no camera height: it is estimated); when ``../shared`` beside ``--kitti-root`` holds them, KITTI raw
 drive 0005 (``kitti_raw_0005``: oxts ground truth, an Eigen test drive) and ``handheld_markers`` (210 hand-held
 frames with marker-based poses, run with ``experiment=handheld`` unless the configuration names its own experiment;
-its metric scale is the driving network's: read its true-length RPE and 7-DoF ATE).
+its metric scale is the driving network's: read its true-length RPE and 7-DoF ATE); with ``--handheld-seeds``, the
+synthetic hand-held worlds of those seeds, planar and corner (``synthetic_handheld_planar_sS``,
+``synthetic_handheld_sS``; ``--synthetic-frames`` frames, the default ``tracker.motion=auto``), tabulated apart in
+``OUT/handheld.md``: constant-motion frames, 7-DoF ATE, true-length RPE and ``auto``'s verdict.
 
 Configurations (``--configs``, each a name from :data:`CONFIGS` or ``NAME:override,override``): the defaults, the
 paper (``experiment=paper``), the classical flow (``flow=dis``) and each of issue 24's additions switched off alone.
@@ -62,6 +65,22 @@ CONFIGS: dict[str, list[str]] = {
 SCENARIOS = ("drive", "city", "straight", "highway")
 
 
+HANDHELD_WORLDS = ("handheld_planar", "handheld")  # the synthetic hand-held worlds (--handheld-seeds)
+
+
+def handheld_seeds(text: str | None) -> list[int]:
+    """``--handheld-seeds``: comma-separated seeds (``1000,1001``) or a range ``1000-1003``; None or empty: none."""
+    if not text:
+        return []
+    try:
+        if "-" in text:
+            lo, hi = (int(v) for v in text.split("-"))
+            return list(range(lo, hi + 1))
+        return [int(v) for v in text.split(",")]
+    except ValueError:
+        raise SystemExit(f"--handheld-seeds={text!r}; expected seeds like 1000,1001 or a range 1000-1003") from None
+
+
 def cases(args: argparse.Namespace) -> dict[str, list[str]]:
     """Case name -> infer.py overrides."""
     kitti = f"data.root={args.kitti_root}"
@@ -85,6 +104,10 @@ def cases(args: argparse.Namespace) -> dict[str, list[str]]:
         intr = [f"data.{k}={v}" for k, v in HANDHELD_MARKERS_INTRINSICS.items()]
         out["handheld_markers"] = ["data=folder", f"data.root={markers / 'images'}", *intr,
                                    f"data.gt={markers / 'poses.txt'}", "data.gt_format=kitti", "experiment=handheld"]
+    for seed in handheld_seeds(getattr(args, "handheld_seeds", None)):
+        for scenario in HANDHELD_WORLDS:
+            out[f"synthetic_{scenario}_s{seed}"] = ["data=synthetic", f"seq={scenario}", f"data.seed={seed}",
+                                                    f"data.num_frames={args.synthetic_frames}"]
     if args.video:
         intr = [f"data.{k}={v}" for k, v in KITTI_07_INTRINSICS.items()]
         out["kitti07_video"] = ["data=video", f"data.path={args.video}", *intr,
@@ -186,6 +209,9 @@ def run(name: str, case: list[str], config: list[str], out: Path, threads: int) 
     record.update(metrics(gt, pred))
     record["fps"] = round(summary["fps"], 2)
     record["trackers"] = summary["fallback"]["trackers"]
+    record["constant_motion"] = summary["fallback"]["constant_motion"]
+    motion = summary.get("motion") or {}
+    record["motion"] = {k: motion.get(k) for k in ("motion", "judged_from_frame", "revised_from_frame")}
     record["camera_height"] = summary.get("camera_height")
     return record
 
@@ -211,6 +237,35 @@ def table(result: dict[str, Any], case_names: list[str]) -> str:
     return "\n".join(lines)
 
 
+def is_handheld_world(case: str) -> bool:
+    """A synthetic hand-held world's case (``--handheld-seeds``)."""
+    return case.startswith(tuple(f"synthetic_{w}_s" for w in HANDHELD_WORLDS))
+
+
+def handheld_table(result: dict[str, Any], case_names: list[str]) -> str:
+    """Rows: configurations; cells of the hand-held worlds: constant-motion frames, 7-DoF ATE (m), true-length RPE
+    (m) and ``auto``'s verdict (``motion@judged/revised`` frame); last column: the constant-motion frames in all."""
+    names = [c for c in case_names if is_handheld_world(c)]
+    if not names:
+        return ""
+    head = ["configuration", *names, "constant motion in all"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for cname, runs in result["runs"].items():
+        cells, total = [], 0
+        for case in names:
+            r = runs.get(case)
+            if r is None or "error" in r or "constant_motion" not in r:
+                cells.append("—" if r is None else "error")
+                continue
+            m = r["motion"]
+            total += r["constant_motion"]
+            cells.append(f"{r['constant_motion']} CM, {r['as_run']['ate_7dof_m']:.4f} / "
+                         f"{r['true_lengths']['rpe_m']:.5f}, {m['motion']}@{m['judged_from_frame']}/"
+                         f"{m['revised_from_frame']}")
+        lines.append("| " + " | ".join([cname, *cells, str(total)]) + " |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", default="runs/length_panel")
@@ -222,6 +277,8 @@ def main() -> None:
     p.add_argument("--video", default=None, help="H.264 file of KITTI 07's frames (case kitti07_video)")
     p.add_argument("--make-video", action="store_true", help="write --video from the KITTI 07 images first")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--handheld-seeds", default=None,
+                   help="the synthetic hand-held worlds (planar and corner) of these seeds, e.g. 1000-1003")
     args = p.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -249,9 +306,13 @@ def main() -> None:
             shown = record.get("error") or f"{record['as_run']['rpe_m']:.4f} m (true-length " \
                                             f"{record['true_lengths']['rpe_m']:.4f})"
             print(f"{cname:45s} {case:20s} {shown}", flush=True)
-    text = table(result, names)
+    text = table(result, [n for n in names if not is_handheld_world(n)])  # the worlds of a hand: handheld.md
     (out / "panel.md").write_text(text + "\n")
     print(text)
+    hand = handheld_table(result, names)
+    if hand:
+        (out / "handheld.md").write_text(hand + "\n")
+        print(hand)
 
 
 if __name__ == "__main__":

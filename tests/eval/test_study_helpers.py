@@ -111,3 +111,43 @@ def test_length_panel_cases_include_the_raw_and_hand_held_sequences(tmp_path: Pa
         K = np.loadtxt(shared)
         assert np.allclose([K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
                            [HANDHELD_MARKERS_INTRINSICS[k] for k in ("fx", "fy", "cx", "cy")], atol=1e-6)
+
+
+def test_length_panel_takes_the_hand_held_worlds_by_seed_and_tabulates_them(tmp_path: Path) -> None:
+    """``--handheld-seeds``: each seed's planar and corner hand-held worlds join the cases (a range or a list; a bad
+    value is one clear error); their table gives each run's constant-motion frames, 7-DoF ATE, true-length RPE and
+    ``auto``'s verdict, and sums the constant-motion frames (a hand-made panel)."""
+    import argparse
+
+    import pytest
+
+    from studies.length_panel import cases, handheld_seeds, handheld_table, is_handheld_world
+
+    assert handheld_seeds("1000-1002") == [1000, 1001, 1002] and handheld_seeds("7,9") == [7, 9]
+    assert handheld_seeds(None) == [] and handheld_seeds("") == []
+    with pytest.raises(SystemExit, match="--handheld-seeds='10-x'"):
+        handheld_seeds("10-x")
+    args = argparse.Namespace(kitti_root=str(tmp_path / "kitti_odom"), synthetic_frames=12, video=None,
+                              handheld_seeds="1000,1001")
+    found = cases(args)
+    assert found["synthetic_handheld_planar_s1001"] == ["data=synthetic", "seq=handheld_planar", "data.seed=1001",
+                                                        "data.num_frames=12"]
+    assert "synthetic_handheld_s1000" in found and not is_handheld_world("synthetic_drive")
+    assert not any(is_handheld_world(c) for c in cases(argparse.Namespace(**{**vars(args), "handheld_seeds": None})))
+
+    def run(cm: int, ate: float, rpe: float, motion: str, judged: int, revised: int | None) -> dict:
+        return {"constant_motion": cm, "as_run": {"ate_7dof_m": ate}, "true_lengths": {"rpe_m": rpe},
+                "motion": {"motion": motion, "judged_from_frame": judged, "revised_from_frame": revised}}
+
+    result = {"runs": {"a": {"synthetic_handheld_planar_s1000": run(3, 0.0412, 0.00123, "handheld", 28, 33),
+                             "synthetic_handheld_s1000": run(1, 0.02, 0.0005, "handheld", 6, None),
+                             "kitti07": {"error": "x"}},
+                       "b": {"synthetic_handheld_planar_s1000": {"error": "boom"}}}}
+    text = handheld_table(result, ["kitti07", "synthetic_handheld_planar_s1000", "synthetic_handheld_s1000"])
+    lines = text.splitlines()
+    assert lines[0] == ("| configuration | synthetic_handheld_planar_s1000 | synthetic_handheld_s1000 | "
+                        "constant motion in all |")
+    assert lines[2] == ("| a | 3 CM, 0.0412 / 0.00123, handheld@28/33 | 1 CM, 0.0200 / 0.00050, handheld@6/None "
+                        "| 4 |")
+    assert lines[3] == "| b | error | — | 0 |"
+    assert handheld_table(result, ["kitti07"]) == ""
