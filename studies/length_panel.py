@@ -45,6 +45,7 @@ import numpy as np
 from dfvo.eval import evaluate_trajectory
 from dfvo.eval.error_decomposition import scale_free
 from dfvo.io.trajectory import read_kitti_poses
+from dfvo.synthetic.trajectory import HANDHELD_SCENARIOS
 
 ROOT = Path(__file__).resolve().parent.parent
 KITTI_07_INTRINSICS = {"fx": 707.0912, "fy": 707.0912, "cx": 601.8873, "cy": 183.1104}  # calib.txt P0 of 07
@@ -63,9 +64,6 @@ CONFIGS: dict[str, list[str]] = {
     "window bundle adjustment (opt-in)": ["tracker.window.enabled=true"],
 }
 SCENARIOS = ("drive", "city", "straight", "highway")
-
-
-HANDHELD_WORLDS = ("handheld_planar", "handheld")  # the synthetic hand-held worlds (--handheld-seeds)
 
 
 def handheld_seeds(text: str | None) -> list[int]:
@@ -105,7 +103,7 @@ def cases(args: argparse.Namespace) -> dict[str, list[str]]:
         out["handheld_markers"] = ["data=folder", f"data.root={markers / 'images'}", *intr,
                                    f"data.gt={markers / 'poses.txt'}", "data.gt_format=kitti", "experiment=handheld"]
     for seed in handheld_seeds(getattr(args, "handheld_seeds", None)):
-        for scenario in HANDHELD_WORLDS:
+        for scenario in HANDHELD_SCENARIOS:
             out[f"synthetic_{scenario}_s{seed}"] = ["data=synthetic", f"seq={scenario}", f"data.seed={seed}",
                                                     f"data.num_frames={args.synthetic_frames}"]
     if args.video:
@@ -239,7 +237,7 @@ def table(result: dict[str, Any], case_names: list[str]) -> str:
 
 def is_handheld_world(case: str) -> bool:
     """A synthetic hand-held world's case (``--handheld-seeds``)."""
-    return case.startswith(tuple(f"synthetic_{w}_s" for w in HANDHELD_WORLDS))
+    return case.startswith(tuple(f"synthetic_{w}_s" for w in HANDHELD_SCENARIOS))
 
 
 def handheld_table(result: dict[str, Any], case_names: list[str]) -> str:

@@ -556,8 +556,7 @@ class MotionAutoConfig:
             (``handheld_markers``: judged at frame 13 with 0.5, 28 with 1.0).
         revise_frames: after a car's verdict, the last this many measured translations (counted as for ``frames``)
             are judged again on every frame that counts one: when their median angle to the optical axis exceeds
-            ``off_axis_deg``
-            and their median angle above or below the camera's horizontal plane (x-z) exceeds
+            ``off_axis_deg`` and their median angle above or below the camera's horizontal plane (x-z) exceeds
             ``revise_elevation_deg``, the motion turns hand-held for the rest of the sequence (a hand whose first
             moves ran along the optical axis, or were measured so). A car moves in that plane whatever it does
             (the synthetic drive's sideways steps, 73-86 deg off the axis, lie in it). A hand-held verdict is

@@ -158,8 +158,8 @@ class MotionJudge:
                                f"between the translation and the optical axis over {len(self.angles)} frames is "
                                f"{median:.1f} deg {side} motion_auto.off_axis_deg={limit:g})")
         elif self.revisable and len(self.latest) == self.latest.maxlen:
-            off = statistics.median(a for a, _ in self.latest)
-            up = statistics.median(e for _, e in self.latest)
+            off = statistics.median(off_axis for off_axis, _ in self.latest)
+            up = statistics.median(rise for _, rise in self.latest)
             if off > limit and up > float(a.revise_elevation_deg):
                 self.revised_at = frame
                 self.motion = MotionModel.handheld
