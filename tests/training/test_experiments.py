@@ -91,14 +91,18 @@ def test_flow_fast_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["flow_allspeed", "flow_gpu", "flow_tiny"])
-def test_other_flow_experiments_smoke(tmp_path: Path, kitti_raw_root: Path, name: str) -> None:
-    """The other step-scheduled flow experiments, with the phases shortened so the mixed phase runs too (flow_tiny:
-    with the shipped flow.safetensors teaching its KITTI pairs)."""
+@pytest.mark.parametrize(("name", "first_phase_steps"),
+                         [("flow_allspeed", 1), ("flow_gpu", 1), ("flow_tiny", 1), ("flow_every_distill", None)])
+def test_other_flow_experiments_smoke(tmp_path: Path, kitti_raw_root: Path, name: str,
+                                      first_phase_steps: int | None) -> None:
+    """The other step-scheduled flow experiments, with the phases shortened so the mixed phase runs too (flow_tiny
+    and flow_every_distill, whose one phase is the mixed one: with the shipped flow.safetensors teaching their KITTI
+    pairs)."""
+    shorten = [f"model.phases.0.steps={first_phase_steps}"] if first_phase_steps else []
     out = _run(tmp_path, f"experiment={name}", f"data.root={kitti_raw_root.parent}", *TINY_FLOW,
-               "model.init_from=null", "model.phases.0.steps=1")
+               "model.init_from=null", *shorten)
     assert out["global_step"] == 3 and "train/self_loss" in out["metrics"]
-    assert ("train/distill_epe" in out["metrics"]) == (name == "flow_tiny")
+    assert ("train/distill_epe" in out["metrics"]) == (name in ("flow_tiny", "flow_every_distill"))
 
 
 @pytest.mark.slow
@@ -183,3 +187,6 @@ def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path:
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
     assert small.width_multiplier == 0.5 and small.w_distill > 0
+    distill = model_config(_compose("experiment=flow_every_distill", f"runs_dir={tmp_path}"))
+    assert distill.init_from == str(tmp_path / "flow_every" / "weights.safetensors")
+    assert distill.teacher and distill.w_distill > 0 and all(p.kitti for p in distill.phases)
