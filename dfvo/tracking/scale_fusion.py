@@ -179,7 +179,11 @@ class ScaleFusion:
         prior = self.filter.prior(temporal_scale, temporal_std)
         if (ra.enabled and h_m is not None and grey_pair is not None and network_plane is not None
                 and network_plane.normal is not None):
-            expected = h_m / math.exp(prior.x) if prior.known else None
+            # the expected travel moves the patch ahead: the filter's prediction, or before it knows a scale the
+            # network's own (its bias unknown: searched 2x either way of it, then the whole range as before); a patch
+            # not moved ahead left one road block in view at 3.6 m a frame (KITTI 06 every third frame, docs/scale.md)
+            travel = math.exp(prior.x) if prior.known else cnn_scale
+            expected = h_m / travel if travel is not None and travel > 0 and math.isfinite(travel) else None
             # the patch is placed on the network's road, or at the camera height in metres (given or estimated) when
             # the network's road is implausibly far from it (a network of another scale: its patch would miss the
             # road ahead; docs/scale.md)

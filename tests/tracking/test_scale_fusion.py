@@ -414,3 +414,31 @@ def test_a_new_pace_confirmed_by_consecutive_frames_is_accepted(planar_exact: tu
             if res[k].diagnostics.tracker != "constant_motion":
                 t, t_true = res[k].T_prev_cur[:3, 3].double(), true[k, :3, 3]
                 assert float((t @ t_true) / (t.norm() * t_true.norm())) > math.cos(math.radians(1.0)), (c, k)
+
+
+def test_a_first_road_observation_moves_the_network_s_length_and_its_bias_together():
+    """Frames with the CNN scale alone keep the network's length (its bias unknown: ``x + b``); when the first road
+    observation makes the bias observable, the kept length is uncertain by the bias's prior and anti-correlated with
+    it, so the road observation moves both (hand-derived Kalman update). KITTI 06 at every third frame started so:
+    the network's 2.19 m against the road's 3.80 m, and the lengths stayed short when the bias started at 1."""
+    cnn_var, motion_var, bias_var, road_var = 0.1 ** 2, 0.1 ** 2, 0.5 ** 2, 0.07 ** 2
+    f = ScaleFilter(temporal=True, estimate_bias=False, cnn_log_std=0.1, height_log_std=0.05, motion_log_std=0.1,
+                    temporal_log_std=0.01, relative_process_std=0.0, bias_prior_log_std=0.5, bias_log_std=0.0,
+                    gate_sigma=4.0, warmup_frames=0)
+    network, road = 2.19, 3.80  # the network's first length (its bias 0.58) and the road's length, metres
+    first = f.estimate(f.prior(), cnn=network, height=None)
+    x, pxx = first.state.x, first.state.pxx  # log 2.19 and the CNN's variance (after a prior of 1e6)
+    assert first.source == "cnn" and math.isclose(x, math.log(network), rel_tol=1e-6)
+    assert math.isclose(pxx, cnn_var, rel_tol=1e-6)
+    f.commit(first.state)
+    prior = f.start_bias_estimate(f.prior())
+    # by hand: x with variance cnn + motion + bias, covariance with b -bias, b = 0 with variance bias
+    assert math.isclose(prior.pxx, pxx + motion_var + bias_var) and math.isclose(prior.pxb, -bias_var)
+    assert prior.x == x and prior.b == 0.0 and math.isclose(prior.pbb, bias_var)
+    est = f.estimate(prior, cnn=None, height=None, homography=road, homography_log_std=0.07)
+    s = pxx + motion_var + bias_var + road_var
+    y = math.log(road) - x
+    assert math.isclose(math.log(est.scale), x + (pxx + motion_var + bias_var) / s * y)
+    assert math.isclose(math.log(est.bias), -bias_var / s * y)
+    assert abs(est.scale / road - 1) < 0.03  # the road's length, not the network's (0.58 of it) ...
+    assert 0.55 < est.bias < 0.65  # ... and the network's factor found in the same update
