@@ -174,10 +174,10 @@ def test_the_road_patch_is_placed_by_the_camera_height_not_the_networks_scale(de
 
 def test_a_first_frame_moves_its_road_patch_ahead_by_the_network_s_travel() -> None:
     """Before the filter knows a scale, the road patch moves ahead by the network's own travel (its bias unknown),
-    as later frames' move by the prediction. A depth network at 0.6x the truth (KITTI 06 at every third frame: 0.59-0.70)
-    on a fast drive (frames 2-4 of the drive world at 3.6 m/frame, exact flow, the camera height given): the first
-    pair's road scale is found, within 3 % of the true length, the network's factor with it, and both lengths are the
-    truth's within 2 % (the patch left where it was aligned one block: no road scale, the network's 0.6 kept)."""
+    as later frames' move by the prediction. A depth network at 0.6x the truth (KITTI 06 at every third frame:
+    0.59-0.70) on a fast drive (frames 2-4 of the drive world at 3.6 m/frame, exact flow, the camera height given):
+    the first pair's road scale is found, within 3 % of the true length, the network's factor with it, and both
+    lengths are the truth's within 2 % (the patch left where it was aligned one block: no road scale, 0.6 kept)."""
     from dfvo.tracking.config import ScaleConfig, TrackerConfig
     from dfvo.tracking.odometry import VisualOdometry
 
