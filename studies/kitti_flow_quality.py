@@ -1,6 +1,6 @@
 """How good is a flow checkpoint on real KITTI frames, where there is no true flow? Measured against the true poses.
 
-For every consecutive frame pair of a KITTI odometry snippet the true relative pose gives the fundamental matrix
+For every frame pair (k, k + ``--step``) of a KITTI odometry snippet the true relative pose gives the fundamental matrix
 ``F = K^-T [t]x R K^-1``; a correct flow puts every pixel of frame i on its epipolar line in frame j, so the
 Sampson distance of (x, x + flow(x)) to F is a lower bound of the flow's error (it misses errors along the line).
 Reported (pixels of the working resolution, 640x192 by default), over all pixels of all pairs, and over the
@@ -52,6 +52,7 @@ def main() -> None:
     p.add_argument("--input-size", default=None, help="H,W the network runs at (default: checkpoint metadata)")
     p.add_argument("--root", default=str(Path(__file__).resolve().parents[2] / "shared/data/kitti_odom"))
     p.add_argument("--seq", default="06")
+    p.add_argument("--step", type=int, default=1, help="pairs (k, k + step), as infer.py's data.step (default 1)")
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--width", type=int, default=640)
     p.add_argument("--batch", type=int, default=4)
@@ -73,11 +74,13 @@ def main() -> None:
     epi, fb, sel_epi = [], [], []
     failed = skipped = 0
     t_flow = t_refine = 0.0
-    pairs = [k for k in range(len(ds) - 1)]
+    if args.step < 1:
+        raise SystemExit(f"--step {args.step}: expected a positive frame gap")
+    pairs = [k for k in range(len(ds) - args.step)]
     for start in range(0, len(pairs), args.batch):
         ks = pairs[start:start + args.batch]
         prev = torch.stack([ds[k]["image"] for k in ks])
-        cur = torch.stack([ds[k + 1]["image"] for k in ks])
+        cur = torch.stack([ds[k + args.step]["image"] for k in ks])
         t0 = time.perf_counter()
         fwd, bwd = src(prev, cur)
         t_flow += time.perf_counter() - t0
@@ -89,7 +92,7 @@ def main() -> None:
         incon = forward_backward_inconsistency(fwd, bwd)
         sel = select_correspondences(fwd, incon)
         for b, k in enumerate(ks):
-            T_prev_cur = np.linalg.inv(ds.poses[k]) @ ds.poses[k + 1]
+            T_prev_cur = np.linalg.inv(ds.poses[k]) @ ds.poses[k + args.step]
             if np.linalg.norm(T_prev_cur[:3, 3]) < 0.1:
                 skipped += 1
                 continue
@@ -115,7 +118,7 @@ def main() -> None:
         "source": args.source if args.source == "network" else f"dis ({args.preset})",
         "checkpoint": args.checkpoint if args.source == "network" else None,
         "variant": getattr(src, "variant", None), "network_input": getattr(src, "input_size", None),
-        "sequence": args.seq, "pairs": len(pairs) - skipped, "skipped_static": skipped,
+        "sequence": args.seq, "step": args.step, "pairs": len(pairs) - skipped, "skipped_static": skipped,
         "resolution": [H, W],
         "epipolar_px": {"median": q(epi_all, 0.5), "p90": q(epi_all, 0.9),
                         "under_1px": round(float((epi_all < 1).float().mean()), 3)},
