@@ -8,6 +8,8 @@ correspondences the tracker would use (local best-K with the official 0.1 px for
 
     - ``epipolar_px``: median and 90th percentile of the Sampson distance, fraction of pixels under 1 px;
     - ``fb_px``: forward-backward inconsistency percentiles, fraction of pixels under 0.1 px and under 1 px;
+    - ``epipolar_by_fb_px``: per band of forward-backward inconsistency (px), its share of the pixels and their median
+      Sampson distance: how well the consistency the selection ranks by tells the flow's error;
     - ``selection``: pairs where local best-K fails (→ constant motion), median epipolar error of the selected.
 
 Pairs with almost no translation (< 0.1 m) are skipped: F is undefined there. ``--refine-iterations N`` applies the
@@ -41,6 +43,8 @@ from dfvo.sources import find_checkpoint
 from dfvo.sources.dis import DISFlow
 from dfvo.sources.networks import NetworkFlow
 
+FB_BANDS = ((0.0, 0.025), (0.025, 0.05), (0.05, 0.1), (0.1, 0.5), (0.5, 1.0))  # px, for epipolar_by_fb_px
+
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -71,7 +75,7 @@ def main() -> None:
     ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
                             indexing="ij")
     grid = torch.stack([xs, ys], -1).view(1, -1, 2)
-    epi, fb, sel_epi = [], [], []
+    epi, fb, sel_epi, epi_by_fb = [], [], [], []
     failed = skipped = 0
     t_flow = t_refine = 0.0
     if args.step < 1:
@@ -102,6 +106,7 @@ def main() -> None:
             ok = torch.isfinite(d)
             epi.append(d[ok].float())
             fb.append(incon[b].flatten()[torch.isfinite(incon[b].flatten())])
+            epi_by_fb.append(torch.stack([incon[b].flatten().double(), d]).T[ok & torch.isfinite(incon[b].flatten())])
             if bool(sel.failed[b]):
                 failed += 1
                 continue
@@ -110,6 +115,7 @@ def main() -> None:
             sel_epi.append(sampson_sq(F, xi, xj)[0, 0].sqrt().float())
     epi_all, fb_all = torch.cat(epi), torch.cat(fb)
     sel_all = torch.cat(sel_epi) if sel_epi else torch.zeros(0)
+    pairs_fb_epi = torch.cat(epi_by_fb).float()
 
     def q(x: torch.Tensor, v: float) -> float | None:
         return round(float(torch.quantile(x[torch.randperm(len(x))[:1_000_000]], v)), 3) if len(x) else None
@@ -125,6 +131,10 @@ def main() -> None:
         "fb_px": {"median": q(fb_all, 0.5), "p10": q(fb_all, 0.1),
                   "under_0.1px": round(float((fb_all < 0.1).float().mean()), 4),
                   "under_1px": round(float((fb_all < 1).float().mean()), 3)},
+        "epipolar_by_fb_px": {f"{lo}-{hi}": {"share": round(float(m.float().mean()), 4),
+                                             "median": q(pairs_fb_epi[m, 1], 0.5)}
+                              for lo, hi in FB_BANDS
+                              for m in [(pairs_fb_epi[:, 0] >= lo) & (pairs_fb_epi[:, 0] < hi)]},
         "selection": {"failed_pairs": failed, "median_epipolar_px": q(sel_all, 0.5),
                       "selected": len(sel_all)},
         "refine_iterations": args.refine_iterations,
