@@ -16,20 +16,12 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
-from PIL import Image
 
+from dfvo.data.image_io import read_image
 from dfvo.io.checkpoint import find_checkpoint
 from dfvo.sources.networks import NetworkFlow
-
-
-def _load(path: Path, size: tuple[int, int]) -> torch.Tensor:
-    """(3,H,W) float in [0, 1], resized bilinearly to ``size``."""
-    x = torch.from_numpy(np.array(Image.open(path).convert("RGB"))).permute(2, 0, 1).float() / 255
-    return F.interpolate(x[None], size=size, mode="bilinear", align_corners=False)[0]
 
 
 def main() -> None:
@@ -47,8 +39,8 @@ def main() -> None:
     if not starts:
         raise SystemExit(f"--drive {a.drive}: no image_02/data frames for pairs with --gap {a.gap}")
     size = (192, 640)
-    A = torch.stack([_load(files[k], size) for k in starts])
-    B = torch.stack([_load(files[k + a.gap], size) for k in starts])
+    A = torch.stack([read_image(files[k], size=size) for k in starts])
+    B = torch.stack([read_image(files[k + a.gap], size=size) for k in starts])
     gA, gB = (rgb_to_grayscale(x).expand(-1, 3, -1, -1) for x in (A, B))
     out, ref = {}, None
     for ckpt in a.checkpoints:

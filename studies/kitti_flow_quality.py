@@ -105,8 +105,10 @@ def main() -> None:
             d = sampson_sq(F, grid, x_j)[0, 0].sqrt()
             ok = torch.isfinite(d)
             epi.append(d[ok].float())
-            fb.append(incon[b].flatten()[torch.isfinite(incon[b].flatten())])
-            epi_by_fb.append(torch.stack([incon[b].flatten().double(), d]).T[ok & torch.isfinite(incon[b].flatten())])
+            inc = incon[b].flatten()
+            inc_ok = torch.isfinite(inc)
+            fb.append(inc[inc_ok])
+            epi_by_fb.append(torch.stack([inc.double(), d]).T[ok & inc_ok])
             if bool(sel.failed[b]):
                 failed += 1
                 continue
