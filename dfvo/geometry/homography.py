@@ -13,7 +13,8 @@ Convention:
     H (B,3,3) pixel homography ``x_j ~ H x_i`` (i previous, j current); K (B,3,3); pts_i, pts_j (B,N,2) pixels;
     mask (B,N) bool. Candidates: R (B,4,3,3), t_over_d (B,4,3), n (B,4,3) unit normals in camera i, in_front (B,4)
     the fraction of valid rows with ``n^T x_i > 0``. A pure rotation (the singular values all 1) gives ``t / d = 0``
-    and an undefined normal.
+    and an undefined normal. A homography that is not finite or not of full rank (a RANSAC fit to collinear points)
+    has no decomposition: its ``in_front`` is 0 for all four.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from dfvo.geometry.two_view import normalise_points
 
 __all__ = ["HomographyDecomposition", "decompose_homography"]
+
+_MIN_SINGULAR_RATIO = 1e-9  # smallest / largest singular value below which a homography counts as degenerate
 
 
 @dataclass
@@ -52,8 +55,15 @@ def decompose_homography(H: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor, 
                  f"decompose_homography: pts_j {tuple(pts_j.shape)} and mask {tuple(mask.shape)} must match pts_i "
                  f"{tuple(pts_i.shape)}")
     Kd = K.to(torch.float64)
-    Hc = torch.linalg.solve(Kd, H.to(torch.float64)) @ Kd
-    Hc = Hc / torch.linalg.svdvals(Hc)[:, 1, None, None].clamp_min(1e-300)
+    eye = torch.eye(3, dtype=torch.float64, device=H.device).expand_as(Kd)
+    H64 = H.to(torch.float64)
+    finite = torch.isfinite(H64).all(-1).all(-1)
+    Hc = torch.linalg.solve(Kd, torch.where(finite[:, None, None], H64, eye)) @ Kd
+    sv = torch.linalg.svdvals(Hc)
+    # a plane seen from two cameras induces a full-rank homography; a RANSAC fit to collinear points may be rank 1-2
+    # (its normalisation would overflow): no decomposition for those pairs (in_front 0, the identity in its place)
+    usable = finite & (sv[:, 2] > _MIN_SINGULAR_RATIO * sv[:, 0])
+    Hc = torch.where(usable[:, None, None], Hc / sv[:, 1, None, None].clamp_min(1e-300), eye)
     xi, xj = (torch.nn.functional.pad(normalise_points(p.to(torch.float64), Kd), (0, 1), value=1.0)
               for p in (pts_i, pts_j))
     agreement = torch.where(mask, torch.einsum("bnr,brc,bnc->bn", xj, Hc, xi), torch.zeros_like(xi[..., 0]))
@@ -78,4 +88,5 @@ def decompose_homography(H: torch.Tensor, K: torch.Tensor, pts_i: torch.Tensor, 
     R, t, n = torch.stack(Rs, 1), torch.stack(ts, 1), torch.stack(ns, 1)
     front = (torch.einsum("bmc,bnc->bmn", n, xi) > 0) & mask[:, None]
     in_front = front.sum(-1).to(torch.float64) / mask.sum(-1, keepdim=True).clamp_min(1).to(torch.float64)
+    in_front = torch.where(usable[:, None], in_front, torch.zeros_like(in_front))
     return HomographyDecomposition(R, t, n, in_front)

@@ -70,3 +70,21 @@ def test_pure_rotation_has_no_translation() -> None:
     out = decompose_homography(H, K[None], pi, pj, torch.ones(1, 100, dtype=torch.bool))
     assert (out.R[0] - R).abs().max() < 1e-6
     assert out.t_over_d[0].norm(dim=-1).max() < 1e-6
+
+
+def test_a_degenerate_homography_beside_a_plane_s_has_no_decomposition_and_does_not_stop_the_batch() -> None:
+    """A batch of three pairs: a plane's exact homography, the rank-1 matrix a RANSAC fit to collinear points
+    returned on a hand-held world (its normalisation by the middle singular value overflowed and eigh raised), and a
+    non-finite one. The plane's pair decomposes as alone; the other two put nothing in front (no decomposition)."""
+    R, t = rotation([1, 2, 0.5], 7.0), torch.tensor([-0.03, 0.04, 0.06], dtype=D)
+    pi, pj, H = plane_view(torch.tensor([0.3, 0.5, 1.0], dtype=D), 1.0, R, t)
+    rank1 = torch.zeros(1, 3, 3, dtype=D)
+    rank1[0, 1, 0], rank1[0, 1, 2] = 1.0202, -230.5693
+    nan = torch.full((1, 3, 3), float("nan"), dtype=D)
+    mask = torch.ones(3, 100, dtype=torch.bool)
+    out = decompose_homography(torch.cat([H, rank1, nan]), K[None].expand(3, 3, 3), pi.expand(3, -1, -1),
+                               pj.expand(3, -1, -1), mask)
+    alone = decompose_homography(H, K[None], pi, pj, mask[:1])
+    assert torch.equal(out.in_front[0], alone.in_front[0]) and torch.allclose(out.R[0], alone.R[0], atol=1e-12)
+    assert float(out.in_front[1:].abs().max()) == 0.0
+    assert bool(torch.isfinite(out.R[1:]).all()) and bool(torch.isfinite(out.t_over_d[1:]).all())
