@@ -10,7 +10,11 @@ correspondences the tracker would use (local best-K with the official 0.1 px for
     - ``fb_px``: forward-backward inconsistency percentiles, fraction of pixels under 0.1 px and under 1 px;
     - ``epipolar_by_fb_px``: per band of forward-backward inconsistency (px), its share of the pixels and their median
       Sampson distance: how well the consistency the selection ranks by tells the flow's error;
-    - ``selection``: pairs where local best-K fails (→ constant motion), median epipolar error of the selected.
+    - ``selection``: pairs where local best-K fails (→ constant motion), median epipolar error of the selected;
+    - ``selected_by_texture``: the selected correspondences per band of their Shi–Tomasi score in frame k (the
+      smaller eigenvalue of the refinement's 11x11 structure tensor, :func:`dfvo.matching.image_ops.shi_tomasi`):
+      share and median Sampson distance. ``--min-texture T`` selects only among pixels scoring at least T
+      (``tracker.correspondence.min_texture``).
 
 Pairs with almost no translation (< 0.1 m) are skipped: F is undefined there. ``--refine-iterations N`` applies the
 pipeline's photometric refinement (``flow.refine``, N Gauss-Newton iterations; 0 = the network's flow as it is) to
@@ -38,12 +42,14 @@ from dfvo.eval.epipolar import fundamental_from_pose
 from dfvo.geometry.two_view import sampson_sq
 from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.flow_refinement import FlowRefinementConfig, refine_forward_backward
+from dfvo.matching.image_ops import shi_tomasi
 from dfvo.matching.selection import select_correspondences
 from dfvo.sources import find_checkpoint
 from dfvo.sources.dis import DISFlow
 from dfvo.sources.networks import NetworkFlow
 
 FB_BANDS = ((0.0, 0.025), (0.025, 0.05), (0.05, 0.1), (0.1, 0.5), (0.5, 1.0))  # px, for epipolar_by_fb_px
+TEXTURE_BANDS = (0.0, 1e-5, 3e-5, 1e-4, 2e-4, 4e-4, 1e-3, float("inf"))  # Shi-Tomasi edges, selected_by_texture
 
 
 def main() -> None:
@@ -62,6 +68,8 @@ def main() -> None:
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--refine-iterations", type=int, default=5, help="photometric refinement iterations (0: none)")
+    p.add_argument("--min-texture", type=float, default=0.0,
+                   help="select only pixels whose Shi-Tomasi score is at least this (0: all, the default)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     size = None if args.input_size is None else [int(v) for v in args.input_size.split(",")]
@@ -75,7 +83,7 @@ def main() -> None:
     ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
                             indexing="ij")
     grid = torch.stack([xs, ys], -1).view(1, -1, 2)
-    epi, fb, sel_epi, epi_by_fb = [], [], [], []
+    epi, fb, sel_epi, epi_by_fb, sel_texture = [], [], [], [], []
     failed = skipped = 0
     t_flow = t_refine = 0.0
     if args.step < 1:
@@ -94,7 +102,8 @@ def main() -> None:
                                                FlowRefinementConfig(iterations=args.refine_iterations))
         t_refine += time.perf_counter() - t0
         incon = forward_backward_inconsistency(fwd, bwd)
-        sel = select_correspondences(fwd, incon)
+        texture = shi_tomasi(prev, 11, 1.0)
+        sel = select_correspondences(fwd, incon.masked_fill(texture < args.min_texture, float("inf")))
         for b, k in enumerate(ks):
             T_prev_cur = np.linalg.inv(ds.poses[k]) @ ds.poses[k + args.step]
             if np.linalg.norm(T_prev_cur[:3, 3]) < 0.1:
@@ -115,9 +124,12 @@ def main() -> None:
             m = sel.mask[b]
             xi, xj = sel.pts_i[b][m].double()[None], sel.pts_j[b][m].double()[None]
             sel_epi.append(sampson_sq(F, xi, xj)[0, 0].sqrt().float())
+            u, v = sel.pts_i[b][m].long().unbind(-1)
+            sel_texture.append(texture[b, 0, v, u])
     epi_all, fb_all = torch.cat(epi), torch.cat(fb)
     sel_all = torch.cat(sel_epi) if sel_epi else torch.zeros(0)
     pairs_fb_epi = torch.cat(epi_by_fb).float()
+    sel_tex = torch.cat(sel_texture) if sel_texture else torch.zeros(0)
 
     def q(x: torch.Tensor, v: float) -> float | None:
         return round(float(torch.quantile(x[torch.randperm(len(x))[:1_000_000]], v)), 3) if len(x) else None
@@ -138,7 +150,12 @@ def main() -> None:
                               for lo, hi in FB_BANDS
                               for m in [(pairs_fb_epi[:, 0] >= lo) & (pairs_fb_epi[:, 0] < hi)]},
         "selection": {"failed_pairs": failed, "median_epipolar_px": q(sel_all, 0.5),
-                      "selected": len(sel_all)},
+                      "mean_epipolar_px": round(float(sel_all.mean()), 4) if len(sel_all) else None,
+                      "selected": len(sel_all), "min_texture": args.min_texture},
+        "selected_by_texture": {f"{lo:g}-{hi:g}": {"share": round(float(m.float().mean()), 4) if len(m) else None,
+                                                   "median": q(sel_all[m], 0.5)}
+                                for lo, hi in zip(TEXTURE_BANDS[:-1], TEXTURE_BANDS[1:])
+                                for m in [(sel_tex >= lo) & (sel_tex < hi)]},
         "refine_iterations": args.refine_iterations,
         "flow_seconds_per_pair": round(t_flow / len(pairs), 4),
         "refine_seconds_per_pair": round(t_refine / len(pairs), 4),

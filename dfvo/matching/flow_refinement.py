@@ -68,7 +68,7 @@ import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.matching.image_ops import box_mean, gradient, smooth
+from dfvo.matching.image_ops import box_mean, gradient, smaller_eigenvalue, smooth
 from dfvo.matching.image_ops import grey as to_grey
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig, refine_pairs_pyramid, refine_pyramid
 from dfvo.validation import choice
@@ -164,7 +164,7 @@ def _invert(prods: torch.Tensor, cfg: FlowRefinementConfig) -> tuple[torch.Tenso
     """Inverse (xx, xy, yy) of the window means of ``prods`` (N,3,H,W) and where it is usable (N,1,H,W)."""
     sxx, sxy, syy = box_mean(prods, int(cfg.window)).split(1, 1)
     det = sxx * syy - sxy * sxy
-    lam_min = 0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy * sxy)
+    lam_min = smaller_eigenvalue(sxx, sxy, syy)
     ok = (lam_min > cfg.min_eigenvalue) & (det > 0)
     inv_det = torch.where(ok, 1.0 / det.clamp_min(1e-30), torch.zeros_like(det))
     return torch.cat([syy * inv_det, -sxy * inv_det, sxx * inv_det], 1), ok

@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from kornia.filters import gaussian_blur2d
 
-__all__ = ["grey", "smooth", "gradient", "box_mean"]
+__all__ = ["grey", "smooth", "gradient", "box_mean", "smaller_eigenvalue", "shi_tomasi"]
 
 
 def grey(images: torch.Tensor) -> torch.Tensor:
@@ -57,3 +57,17 @@ def box_mean(x: torch.Tensor, window: int) -> torch.Tensor:
     mean = x.mean(-2, keepdim=True)
     c = (x - mean).cumsum(-2)
     return (c[..., window:, :] - c[..., :-window, :]) / window + mean
+
+
+def smaller_eigenvalue(sxx: torch.Tensor, sxy: torch.Tensor, syy: torch.Tensor) -> torch.Tensor:
+    """Smaller eigenvalue of the symmetric 2x2 matrices ``[[sxx, sxy], [sxy, syy]]`` (same-shaped tensors)."""
+    return 0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy * sxy)
+
+
+def shi_tomasi(images: torch.Tensor, window: int, sigma: float) -> torch.Tensor:
+    """Shi–Tomasi score of every pixel: the smaller eigenvalue of the ``window`` x ``window`` mean structure tensor
+    of the grey image smoothed by ``sigma`` pixels (intensities in [0,1], gradients per pixel), the quantity the
+    refinements test against their ``min_eigenvalue``. (N,3|1,H,W) -> (N,1,H,W) float32."""
+    gx, gy = gradient(smooth(grey(images), sigma)).split(1, 1)
+    sxx, sxy, syy = box_mean(torch.cat([gx * gx, gx * gy, gy * gy], 1), window).split(1, 1)
+    return smaller_eigenvalue(sxx, sxy, syy)

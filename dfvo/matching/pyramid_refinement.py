@@ -46,7 +46,7 @@ import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.matching.image_ops import box_mean, gradient, smooth
+from dfvo.matching.image_ops import box_mean, gradient, smaller_eigenvalue, smooth
 from dfvo.matching.image_ops import grey as to_grey
 from dfvo.validation import choice
 
@@ -158,7 +158,7 @@ def select_candidates(level0: torch.Tensor, cfg: PyramidRefinementConfig) -> tup
     gx, gy = level0[:, 1:2], level0[:, 2:3]
     w = int(cfg.window)
     sxx, sxy, syy = box_mean(torch.cat([gx * gx, gx * gy, gy * gy], 1), w).split(1, 1)
-    score = 0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy * sxy)  # (N,1,H,W)
+    score = smaller_eigenvalue(sxx, sxy, syy)  # (N,1,H,W)
     r = w // 2 + 1  # keep patches off the border
     score[..., :r, :], score[..., H - r:, :], score[..., :, :r], score[..., :, W - r:] = -1, -1, -1, -1
     c = int(cfg.cell)
@@ -297,7 +297,7 @@ def _lucas_kanade(samplers: list[_Sampler | None], template: torch.Tensor, targe
         Jx, Jy = J[:, 0], J[:, 1]
         a, b, d = (Jx * Jx).sum(1), (Jx * Jy).sum(1), (Jy * Jy).sum(1)  # H = sum J J^T, (P,N)
         det = a * d - b * b
-        lam = 0.5 * (a + d) - torch.sqrt((0.5 * (a - d)) ** 2 + b * b)
+        lam = smaller_eigenvalue(a, b, d)
         good = (lam / n2 > float(cfg.min_eigenvalue) * 0.25 ** lev) & (det > 0)
         inv_det = torch.where(good, 1.0 / torch.where(good, det, 1.0), 0.0)  # 0: the point is not moved
         ia, ib, id_ = d * inv_det, -b * inv_det, a * inv_det  # H^-1
