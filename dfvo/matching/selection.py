@@ -20,6 +20,10 @@ Methods:
       ``generator``, ``num`` distinct pixels drawn uniformly at random instead. Rows whose inconsistency is
       not finite are masked out.
 
+Texture (optional, ``texture`` and ``min_texture > 0``, all methods): a pixel whose Shi–Tomasi score in image i
+(:func:`dfvo.matching.image_ops.shi_tomasi`) is below ``min_texture`` is unusable whatever its inconsistency: where the
+images cannot pin a flow down (flat regions, edges), a smooth network flow can be consistent and wrong alike.
+
 Failure rule (all methods, the official one): with "valid" meaning inconsistency ``< max_inconsistency`` for
 ``local_best_k`` and finite for the other two, a frame fails when it has fewer than
 ``min_valid_fraction * num`` valid pixels, or when fewer than ``min_region_fraction`` of the regions contain a
@@ -62,6 +66,8 @@ class SelectionConfig:
         min_valid_fraction: selection fails (constant motion) below this fraction of consistent pixels.
         min_region_fraction: ``local_best_k`` regions with fewer consistent pixels are skipped.
         crop_top: fraction of image rows at the top not used.
+        min_texture: pixels whose Shi–Tomasi score (intensities in [0,1], gradients per pixel, 11x11 window, the
+            refinement's) is below this are not used; 0: no texture test (the paper).
     """
 
     method: SelectionMethod = SelectionMethod.local_best_k
@@ -71,6 +77,7 @@ class SelectionConfig:
     min_valid_fraction: float = 0.1
     min_region_fraction: float = 0.1
     crop_top: float = 0.0
+    min_texture: float = 0.0
 
     def __post_init__(self) -> None:
         self.method = choice(SelectionMethod, self.method, "tracker.correspondence.method")
@@ -81,6 +88,8 @@ class SelectionConfig:
                                                  f"{self.num_correspondences}; expected a positive integer")
         check(self.max_inconsistency > 0, f"tracker.correspondence.max_inconsistency={self.max_inconsistency}; "
                                            "expected > 0")
+        check(float(self.min_texture) >= 0, f"tracker.correspondence.min_texture={self.min_texture}; expected >= 0 "
+                                            "(0: no texture test)")
         check(0.0 <= self.crop_top < 1.0, f"tracker.correspondence.crop_top={self.crop_top}; expected [0, 1)")
 
 
@@ -193,6 +202,8 @@ def select_correspondences(
     min_region_fraction: float = _DEFAULTS.min_region_fraction,
     crop_top: float = _DEFAULTS.crop_top,
     generator: torch.Generator | None = None,
+    texture: torch.Tensor | None = None,
+    min_texture: float = _DEFAULTS.min_texture,
 ) -> Correspondences:
     """Select up to ``num`` correspondences per frame pair from a forward flow.
 
@@ -208,6 +219,9 @@ def select_correspondences(
         min_region_fraction: a frame fails when fewer than this fraction of regions hold a valid pixel.
         crop_top: fraction of the top rows to ignore, in [0, 1).
         generator: with ``method="uniform"``, draw random pixels with it instead of a regular grid.
+        texture: (B,1,H,W) Shi–Tomasi score of image i; with ``min_texture > 0`` pixels scoring below it are
+            unusable (module docstring). Needed when ``min_texture > 0``.
+        min_texture: see ``texture``.
 
     Returns:
         :class:`Correspondences` with (B,N,...) padded rows.
@@ -230,6 +244,13 @@ def select_correspondences(
     if top > 0:
         incon_flat = incon_flat.clone()
         incon_flat[:, : top * W] = float("inf")
+    if min_texture > 0:
+        KORNIA_CHECK(texture is not None and texture.shape == inconsistency.shape,
+                     f"select_correspondences: min_texture={min_texture} needs the (B,1,H,W) texture of image i "
+                     f"shaped like the inconsistency {tuple(inconsistency.shape)}; got "
+                     f"{None if texture is None else tuple(texture.shape)}")
+        flat = texture.reshape(B, H * W).to(incon_flat.device)
+        incon_flat = torch.where(flat >= min_texture, incon_flat, float("inf"))
     flow_flat = flow_fwd.reshape(B, 2, H * W)
     finite = torch.isfinite(incon_flat)
     valid = finite & (incon_flat < max_inconsistency) if method == "local_best_k" else finite
@@ -274,12 +295,13 @@ def select_correspondences(
 
     pts_i, pts_j, incon = _gather_rows(flow_flat, incon_flat, idx, sel_mask, W)
     failed, reasons = _failure(valid, region_of_pixel, R, num, max_inconsistency, min_valid_fraction,
-                               min_region_fraction, method)
+                               min_region_fraction, method, min_texture)
     return Correspondences(pts_i, pts_j, sel_mask, incon, failed, reasons)
 
 
 def _failure(valid: torch.Tensor, region_of_pixel: torch.Tensor, R: int, num: int, max_inconsistency: float,
-             min_valid_fraction: float, min_region_fraction: float, method: str) -> tuple[torch.Tensor, list]:
+             min_valid_fraction: float, min_region_fraction: float, method: str,
+             min_texture: float = 0.0) -> tuple[torch.Tensor, list]:
     """Apply the official failure rule; returns (B,) failed and the per-frame reasons."""
     B = valid.shape[0]
     n_valid = valid.sum(dim=1)
@@ -293,6 +315,8 @@ def _failure(valid: torch.Tensor, region_of_pixel: torch.Tensor, R: int, num: in
     few_regions = regions_hit.to(torch.float64) < need_regions
     failed = few_valid | few_regions
     what = f"inconsistency < {max_inconsistency} px" if method == "local_best_k" else "a flow target in the image"
+    if min_texture > 0:
+        what += f" and texture >= {min_texture:g}"
     reasons: list[str | None] = []
     for b in range(B):
         parts = []

@@ -34,6 +34,7 @@ give the same poses whatever the batch size.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -44,6 +45,8 @@ from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from dfvo.geometry.se3 import pose_from_rt, se3_inverse
 from dfvo.geometry.two_view import decompose_essential, find_essential_ransac, normalised_rays
 from dfvo.matching.consistency import forward_backward_inconsistency
+from dfvo.matching.flow_refinement import FlowRefinementConfig
+from dfvo.matching.image_ops import shi_tomasi
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
 from dfvo.matching.selection import select_correspondences
 from dfvo.tracking.config import PlanarMotion, ScaleMethod, TrackerConfig, TrackerMode
@@ -59,6 +62,8 @@ from dfvo.tracking.scale_fusion import ScaleFusion
 from dfvo.tracking.window_refinement import WindowRefiner
 
 __all__ = ["FrameMatches", "FrameResult", "VisualOdometry"]
+
+_REFINE = FlowRefinementConfig()  # its window and smoothing score the texture of tracker.correspondence.min_texture
 
 
 @dataclass
@@ -176,6 +181,7 @@ class VisualOdometry:
                  point_refinement: PyramidRefinementConfig | None = None) -> None:
         self.cfg = cfg if cfg is not None else TrackerConfig()
         self.point_refinement = point_refinement
+        self._warned_texture = False
         self.reset()
 
     def reset(self) -> None:
@@ -257,10 +263,17 @@ class VisualOdometry:
         t0 = time.perf_counter()
         sel = cfg.correspondence
         incon = forward_backward_inconsistency(flow_fwd, flow_bwd)
+        min_texture = sel.min_texture if images is not None else 0.0
+        if sel.min_texture > 0 and images is None and not self._warned_texture:
+            self._warned_texture = True
+            warnings.warn(f"tracker.correspondence.min_texture={sel.min_texture} needs the frames (images=...); "
+                          "selecting without the texture test", stacklevel=3)
+        texture = shi_tomasi(images[:-1], _REFINE.window, _REFINE.sigma) if min_texture > 0 else None
         corr = select_correspondences(flow_fwd, incon, method=sel.method.value, num=sel.num_correspondences,
                                       grid=tuple(sel.grid), max_inconsistency=sel.max_inconsistency,
                                       min_valid_fraction=sel.min_valid_fraction,
-                                      min_region_fraction=sel.min_region_fraction, crop_top=sel.crop_top)
+                                      min_region_fraction=sel.min_region_fraction, crop_top=sel.crop_top,
+                                      texture=texture, min_texture=min_texture)
         pi, pj, mask = corr.pts_i.to(torch.float64), corr.pts_j.to(torch.float64), corr.mask
         Kd = K.to(torch.float64)
         t1 = time.perf_counter()

@@ -174,3 +174,27 @@ def test_fewer_rows_than_regions_never_exceeds_num():
                 if (block < 0.1).any():
                     winners.append(float(block[block < 0.1].min()))
         assert sorted(c.inconsistency[b].tolist()) == pytest.approx(sorted(winners)[:40])
+
+
+def test_min_texture_drops_flat_pixels_whatever_their_consistency():
+    """Image i textured (noise) on its left half and flat on its right half; every pixel perfectly consistent. With
+    ``min_texture`` the selection takes only left-half pixels, exactly the local best-K of the inconsistency with the
+    flat half set unusable; without it both halves; a frame whose texture is all flat fails and says why."""
+    from dfvo.matching.image_ops import shi_tomasi
+
+    g = torch.Generator().manual_seed(3)
+    img = torch.full((1, 1, 96, 160), 0.5)
+    img[..., :80] = torch.rand(1, 1, 96, 80, generator=g)
+    texture = shi_tomasi(img, 11, 1.0)
+    assert float(texture[..., :, :70].min()) > 1e-4 and float(texture[..., :, 90:].max()) < 1e-8
+    flow = torch.randn(1, 2, 96, 160, generator=g)
+    incon = torch.rand(1, 1, 96, 160, generator=g) * 0.05
+    gated = select_correspondences(flow, incon, num=2000, texture=texture, min_texture=1e-5)
+    plain = select_correspondences(flow, incon, num=2000)
+    assert float(gated.pts_i[0][gated.mask[0], 0].max()) < 90 and float(plain.pts_i[0][plain.mask[0], 0].max()) > 150
+    ref = select_correspondences(flow, incon.masked_fill(texture < 1e-5, float("inf")), num=2000)
+    assert torch.equal(gated.pts_i, ref.pts_i) and torch.equal(gated.mask, ref.mask)
+    flat = select_correspondences(flow, incon, num=2000, texture=torch.zeros_like(texture), min_texture=1e-5)
+    assert bool(flat.failed[0]) and "texture >= 1e-05" in flat.reasons[0]
+    with pytest.raises(Exception, match="min_texture=1e-05 needs the"):
+        select_correspondences(flow, incon, num=2000, min_texture=1e-5)

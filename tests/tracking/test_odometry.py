@@ -192,3 +192,32 @@ def test_two_view_scale_needs_the_later_depth(drive):
         VisualOdometry(make_cfg(depth_views=2)).run(ff[:2], fb[:2], d[:2], w.intrinsics())
     with pytest.raises(ValueError, match="depth_views"):
         make_cfg(depth_views=3)
+
+
+def test_min_texture_keeps_only_textured_correspondences_and_needs_the_frames(drive):
+    """tracker.correspondence.min_texture: every correspondence the tracker used scores at least the threshold in
+    its frame (the Shi-Tomasi score of the frame given), fewer than without it, and the oracle pose stays exact;
+    without the frames the tracker warns once and selects as without the test."""
+    from dataclasses import replace
+
+    from dfvo.matching.image_ops import shi_tomasi
+
+    w, ff, fb, d = drive
+    K = w.intrinsics()
+    imgs = torch.stack([w.render(i)["image"] for i in range(2)])
+    cfg = make_cfg()
+    gated_cfg = replace(cfg, correspondence=replace(cfg.correspondence, min_texture=1e-4))
+    plain = VisualOdometry(cfg).step(ff[:1], fb[:1], d[:1], K[None], image_prev=imgs[:1], image_cur=imgs[1:])
+    gated = VisualOdometry(gated_cfg).step(ff[:1], fb[:1], d[:1], K[None], image_prev=imgs[:1], image_cur=imgs[1:])
+    texture = shi_tomasi(imgs[:1], 11, 1.0)[0, 0]
+    u, v = gated.matches.pts_prev.round().long().unbind(-1)
+    assert float(texture[v, u].min()) >= 1e-4
+    pu, pv = plain.matches.pts_prev.round().long().unbind(-1)
+    assert float(texture[pv, pu].min()) < 1e-4 and len(u) < len(pu)
+    T = torch.linalg.inv(w.poses()[0]) @ w.poses()[1]
+    assert float((gated.T_prev_cur[:3, 3] - T[:3, 3]).norm()) < 1e-3
+    vo = VisualOdometry(gated_cfg)
+    with pytest.warns(UserWarning, match="min_texture=0.0001 needs the frames"):
+        blind = vo.step(ff[:1], fb[:1], d[:1], K[None])
+    same = VisualOdometry(cfg).step(ff[:1], fb[:1], d[:1], K[None])
+    assert torch.equal(blind.matches.pts_prev, same.matches.pts_prev)
