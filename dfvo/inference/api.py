@@ -70,9 +70,10 @@ class StepResult:
         tracker: ``init`` (frame 0), ``E`` (essential matrix + scale), ``PnP`` or ``constant_motion`` (no tracker
             gave a pose: the previous step repeated, with a large covariance).
         flags: what happened besides the normal path, among ``constant_motion``, ``bad_frame`` (NaN or infinite
-            pixels: not tracked), ``selection_failed``,
-            ``pnp_failed``, ``gate_rejected``, ``scale_predicted`` (the scale filter's prediction was used),
-            ``resized`` (a frame of another size than the first).
+            pixels: not tracked), ``selection_failed``, ``selection_relaxed`` (selected under a relaxed
+            forward-backward bound, ``tracker.correspondence.relaxed_inconsistency``), ``pnp_failed``,
+            ``gate_rejected``, ``scale_predicted`` (the scale filter's prediction was used), ``resized`` (a frame of
+            another size than the first).
         reasons: the tracker's reasons for each fallback or flag (empty on a normal frame).
         diagnostics: everything the tracker measured (the fields of ``frames.csv``).
     """
@@ -270,7 +271,9 @@ def _result(record: Any, timestamp: float | None, resized: bool, skipped: int = 
     res = record.result
     diag: FrameDiagnostics = res.diagnostics
     flags = [name for name, on in (("constant_motion", diag.constant_motion),
-                                   ("selection_failed", diag.selection_failed), ("pnp_failed", diag.pnp_failed),
+                                   ("selection_failed", diag.selection_failed),
+                                   ("selection_relaxed", diag.selection_max_inconsistency is not None),
+                                   ("pnp_failed", diag.pnp_failed),
                                    ("gate_rejected", diag.gate_rejected),
                                    ("scale_predicted", str(diag.scale_source or "").startswith("prediction")),
                                    ("resized", resized)) if on]

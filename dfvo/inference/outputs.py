@@ -279,7 +279,8 @@ class FramesCsv:
 
 def fallback_summary(diagnostics: list[FrameDiagnostics],
                      threshold: float = InferConfig.warn_fallback_rate) -> dict[str, Any]:
-    """Counts of the trackers used and of the frames that fell back to constant motion or whose PnP failed; with
+    """Counts of the trackers used and of the frames that fell back to constant motion, whose PnP failed, or whose
+    correspondences were selected under a relaxed forward-backward bound (``selection_relaxed``); with
     ``tracker.window`` also ``window``: frames whose step the window refined and frames it did not (the reasons are
     ``frames.csv``'s ``window_rejected``).
 
@@ -295,7 +296,8 @@ def fallback_summary(diagnostics: list[FrameDiagnostics],
         name = d.tracker.value if d.tracker is not None else "none"
         trackers[name] = trackers.get(name, 0) + 1
     out = {"frames": len(diagnostics), "constant_motion": const, "pnp_failed": pnp_fail,
-           "constant_motion_rate": const / n, "pnp_failed_rate": pnp_fail / n, "trackers": trackers}
+           "constant_motion_rate": const / n, "pnp_failed_rate": pnp_fail / n, "trackers": trackers,
+           "selection_relaxed": sum(d.selection_max_inconsistency is not None for d in diagnostics)}
     out["warn"] = out["constant_motion_rate"] > threshold or out["pnp_failed_rate"] > threshold
     if any(d.window_tracks is not None or d.window_rejected is not None for d in diagnostics):
         refined = sum(d.window_length_ratio is not None for d in diagnostics)

@@ -68,6 +68,11 @@ class SelectionConfig:
         crop_top: fraction of image rows at the top not used.
         min_texture: pixels whose Shi–Tomasi score (intensities in [0,1], gradients per pixel, 11x11 window, the
             refinement's) is below this are not used; 0: no texture test (the paper).
+        relaxed_inconsistency: a pair that fails the selection rule at ``max_inconsistency`` is selected again at
+            each of these larger bounds in turn (pixels, ascending) and tracked from the first that passes, flagged
+            in its diagnostics (``selection_max_inconsistency``); the bound doubles from the official 0.1 px up to
+            0.8 px by default (measured on the panel: docs/robots.md); empty: it falls back to constant motion (the
+            paper).
     """
 
     method: SelectionMethod = SelectionMethod.local_best_k
@@ -78,6 +83,7 @@ class SelectionConfig:
     min_region_fraction: float = 0.1
     crop_top: float = 0.0
     min_texture: float = 0.0
+    relaxed_inconsistency: list[float] = field(default_factory=lambda: [0.2, 0.4, 0.8])
 
     def __post_init__(self) -> None:
         self.method = choice(SelectionMethod, self.method, "tracker.correspondence.method")
@@ -88,6 +94,11 @@ class SelectionConfig:
                                                  f"{self.num_correspondences}; expected a positive integer")
         check(self.max_inconsistency > 0, f"tracker.correspondence.max_inconsistency={self.max_inconsistency}; "
                                            "expected > 0")
+        self.relaxed_inconsistency = [float(v) for v in self.relaxed_inconsistency]
+        bounds = [float(self.max_inconsistency), *self.relaxed_inconsistency]
+        check(all(a < b for a, b in zip(bounds[:-1], bounds[1:], strict=False)),
+              f"tracker.correspondence.relaxed_inconsistency={self.relaxed_inconsistency}; expected ascending bounds "
+              f"above max_inconsistency={self.max_inconsistency}")
         check(float(self.min_texture) >= 0, f"tracker.correspondence.min_texture={self.min_texture}; expected >= 0 "
                                             "(0: no texture test)")
         check(0.0 <= self.crop_top < 1.0, f"tracker.correspondence.crop_top={self.crop_top}; expected [0, 1)")

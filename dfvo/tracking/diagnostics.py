@@ -59,6 +59,9 @@ class FrameDiagnostics:
         elevation_deg: the same translation's angle (degrees, 0-90) to the camera's horizontal plane (x-z): what
             ``tracker.motion=auto`` revises a car's verdict from.
         selection_failed: too few consistent correspondences (constant motion).
+        selection_max_inconsistency: the forward-backward bound (pixels) the correspondences were selected under
+            when the pair failed the selection at ``tracker.correspondence.max_inconsistency`` and passed at a
+            relaxed one (``relaxed_inconsistency``); None: selected as usual.
         fallback_reason: why the E-tracker's result was not used (None when it was), including the plausibility gates'
             reasons; on an E frame whose scale is the temporal filter's prediction, why.
         window_tracks: tracks in the sliding-window refinement of this step (``tracker.window``; None: not run).
@@ -95,6 +98,7 @@ class FrameDiagnostics:
     off_axis_deg: float | None = None
     elevation_deg: float | None = None
     selection_failed: bool = False
+    selection_max_inconsistency: float | None = None
     fallback_reason: str | None = None
     window_tracks: int | None = None
     window_length_ratio: float | None = None

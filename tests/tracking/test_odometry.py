@@ -221,3 +221,35 @@ def test_min_texture_keeps_only_textured_correspondences_and_needs_the_frames(dr
         blind = vo.step(ff[:1], fb[:1], d[:1], K[None])
     same = VisualOdometry(cfg).step(ff[:1], fb[:1], d[:1], K[None])
     assert torch.equal(blind.matches.pts_prev, same.matches.pts_prev)
+
+
+def test_a_pair_failing_the_selection_is_tracked_under_the_first_relaxed_bound_that_passes(drive):
+    """Exact forward flow, backward flow 0.3 px off everywhere (every pixel ~0.3 px inconsistent): at the official
+    0.1 px the selection fails (constant motion); with relaxed_inconsistency=[0.2, 0.4, 0.8] the pair is selected
+    under 0.4 (0.2 still fails), flagged, and E recovers the true step; the rows of the other pair of the batch,
+    which passes at 0.1, are untouched. A relaxed list must climb above max_inconsistency."""
+    from dataclasses import replace
+
+    from dfvo.matching.selection import SelectionConfig
+
+    w, ff, fb, d = drive
+    K = w.intrinsics()
+    fb_off = fb[:2].clone()
+    fb_off[0, 0] += 0.3
+    cfg = make_cfg()
+    assert cfg.correspondence.relaxed_inconsistency == [0.2, 0.4, 0.8]  # the default
+    cfg = replace(cfg, correspondence=replace(cfg.correspondence, relaxed_inconsistency=[]))  # the paper's rule
+    plain = VisualOdometry(cfg).run(ff[:2], fb_off, d[:2], K, batch_size=2)
+    assert plain[0].diagnostics.selection_failed and plain[0].diagnostics.constant_motion
+    relaxed_cfg = replace(cfg, correspondence=replace(cfg.correspondence, relaxed_inconsistency=[0.2, 0.4, 0.8]))
+    res = VisualOdometry(relaxed_cfg).run(ff[:2], fb_off, d[:2], K, batch_size=2)
+    first = res[0].diagnostics
+    assert not first.selection_failed and first.selection_max_inconsistency == 0.4 and first.tracker == "E"
+    T = torch.linalg.inv(w.poses()[0]) @ w.poses()[1]
+    assert float((res[0].T_prev_cur[:3, 3] - T[:3, 3]).norm()) < 1e-3
+    assert res[1].diagnostics.selection_max_inconsistency is None
+    assert torch.equal(res[1].matches.pts_prev, plain[1].matches.pts_prev)
+    with pytest.raises(ValueError, match="relaxed_inconsistency"):
+        SelectionConfig(relaxed_inconsistency=[0.5, 0.2])
+    with pytest.raises(ValueError, match="relaxed_inconsistency"):
+        SelectionConfig(relaxed_inconsistency=[0.05])
