@@ -167,7 +167,9 @@ def test_tracker_node_is_typed_and_unknown_settings_are_errors() -> None:
     for overrides in (("experiment=paper", "seq=06"), ("data=kitti_odom", "data.root=x", "experiment=paper")):
         paper = typed(compose_infer(*overrides))  # every addition of ours off, KITTI's camera height included
         assert (paper.tracker.scale.camera_height, paper.tracker.scale.temporal, paper.tracker.gate.enabled,
-                paper.flow.refine.iterations) == (None, False, False, 0)
+                paper.flow.refine.iterations, paper.tracker.correspondence.relaxed_inconsistency) == (
+            None, False, False, 0, [])
+    assert icfg.tracker.correspondence.relaxed_inconsistency == [0.2, 0.4, 0.8]  # ours: relaxed bounds
     fast = typed(compose_infer("experiment=fast_motion"))  # the sparse refinement, with the temporal points refined
     assert (fast.flow.refine.mode, fast.tracker.scale_filter.refine_points) == ("pyramid", True)
     # a hand's motion from the first frame; the default judges it (auto), the paper's is a car's throughout
