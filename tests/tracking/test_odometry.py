@@ -90,9 +90,17 @@ def test_standing_still_gives_no_spurious_translation():
 
 
 def test_black_frame_fails_selection_and_uses_constant_motion(drive):
+    """The paper's rule (no relaxed bounds): a pair with nothing forward-backward consistent repeats the previous
+    motion. With the default relaxed bounds, the same pair (its forward flow exact, its backward flow noise of 5 px)
+    finds the few hundred pixels that noise puts within 0.8 px, flags them, and its exact forward flow gives the true
+    step; with the forward flow noise too, it still ends in constant motion."""
+    from dataclasses import replace
+
     w, ff, fb, d = drive
     K = w.intrinsics()[None]
-    vo = VisualOdometry(make_cfg())
+    cfg = make_cfg()
+    paper = replace(cfg, correspondence=replace(cfg.correspondence, relaxed_inconsistency=[]))
+    vo = VisualOdometry(paper)
     first = vo.step(ff[:1], fb[:1], d[:1], K)
     # a black current frame: the network's backward flow is noise, nothing is forward-backward consistent
     noise = torch.randn(fb[1:2].shape, generator=torch.Generator().manual_seed(0)) * 5.0
@@ -102,6 +110,16 @@ def test_black_frame_fails_selection_and_uses_constant_motion(drive):
     assert "selection failed" in black.diagnostics.fallback_reason
     assert torch.equal(black.T_prev_cur, first.T_prev_cur)
     assert torch.allclose(black.T_w_cur, first.T_w_cur @ first.T_prev_cur)
+    vo = VisualOdometry(cfg)
+    first = vo.step(ff[:1], fb[:1], d[:1], K)
+    relaxed = vo.step(ff[1:2], noise, d[1:2], K)
+    assert relaxed.diagnostics.selection_max_inconsistency is not None and not relaxed.diagnostics.selection_failed
+    T = torch.linalg.inv(w.poses()[1]) @ w.poses()[2]
+    assert float((relaxed.T_prev_cur[:3, 3] - T[:3, 3]).norm()) < 1e-2
+    vo = VisualOdometry(cfg)
+    first = vo.step(ff[:1], fb[:1], d[:1], K)
+    garbage = vo.step(torch.randn(ff[1:2].shape, generator=torch.Generator().manual_seed(1)) * 5.0, noise, d[1:2], K)
+    assert garbage.diagnostics.tracker == "constant_motion" and torch.equal(garbage.T_prev_cur, first.T_prev_cur)
 
 
 def test_pnp_only_tracker_is_exact(drive):
