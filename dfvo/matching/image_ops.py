@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from kornia.filters import gaussian_blur2d
 
-__all__ = ["grey", "smooth", "gradient", "box_mean", "smaller_eigenvalue", "shi_tomasi"]
+__all__ = ["grey", "smooth", "gradient", "box_mean", "window_structure_tensor", "smaller_eigenvalue", "shi_tomasi"]
 
 
 def grey(images: torch.Tensor) -> torch.Tensor:
@@ -59,6 +59,12 @@ def box_mean(x: torch.Tensor, window: int) -> torch.Tensor:
     return (c[..., window:, :] - c[..., :-window, :]) / window + mean
 
 
+def window_structure_tensor(gx: torch.Tensor, gy: torch.Tensor, window: int) -> tuple[torch.Tensor, ...]:
+    """Entries (xx, xy, yy) of the ``window`` x ``window`` mean structure tensor of (N,1,H,W) gradients, each
+    (N,1,H,W) float32."""
+    return box_mean(torch.cat([gx * gx, gx * gy, gy * gy], 1), window).split(1, 1)
+
+
 def smaller_eigenvalue(sxx: torch.Tensor, sxy: torch.Tensor, syy: torch.Tensor) -> torch.Tensor:
     """Smaller eigenvalue of the symmetric 2x2 matrices ``[[sxx, sxy], [sxy, syy]]`` (same-shaped tensors)."""
     return 0.5 * (sxx + syy) - torch.sqrt((0.5 * (sxx - syy)) ** 2 + sxy * sxy)
@@ -69,5 +75,4 @@ def shi_tomasi(images: torch.Tensor, window: int, sigma: float) -> torch.Tensor:
     of the grey image smoothed by ``sigma`` pixels (intensities in [0,1], gradients per pixel), the quantity the
     refinements test against their ``min_eigenvalue``. (N,3|1,H,W) -> (N,1,H,W) float32."""
     gx, gy = gradient(smooth(grey(images), sigma)).split(1, 1)
-    sxx, sxy, syy = box_mean(torch.cat([gx * gx, gx * gy, gy * gy], 1), window).split(1, 1)
-    return smaller_eigenvalue(sxx, sxy, syy)
+    return smaller_eigenvalue(*window_structure_tensor(gx, gy, window))

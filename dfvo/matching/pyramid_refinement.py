@@ -46,7 +46,7 @@ import torch
 import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 
-from dfvo.matching.image_ops import box_mean, gradient, smaller_eigenvalue, smooth
+from dfvo.matching.image_ops import gradient, smaller_eigenvalue, smooth, window_structure_tensor
 from dfvo.matching.image_ops import grey as to_grey
 from dfvo.validation import choice
 
@@ -157,8 +157,7 @@ def select_candidates(level0: torch.Tensor, cfg: PyramidRefinementConfig) -> tup
     N, _, H, W = level0.shape
     gx, gy = level0[:, 1:2], level0[:, 2:3]
     w = int(cfg.window)
-    sxx, sxy, syy = box_mean(torch.cat([gx * gx, gx * gy, gy * gy], 1), w).split(1, 1)
-    score = smaller_eigenvalue(sxx, sxy, syy)  # (N,1,H,W)
+    score = smaller_eigenvalue(*window_structure_tensor(gx, gy, w))  # (N,1,H,W)
     r = w // 2 + 1  # keep patches off the border
     score[..., :r, :], score[..., H - r:, :], score[..., :, :r], score[..., :, W - r:] = -1, -1, -1, -1
     c = int(cfg.cell)

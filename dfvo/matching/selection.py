@@ -28,11 +28,13 @@ Failure rule (all methods, the official one): with "valid" meaning inconsistency
 ``local_best_k`` and finite for the other two, a frame fails when it has fewer than
 ``min_valid_fraction * num`` valid pixels, or when fewer than ``min_region_fraction`` of the regions contain a
 valid pixel. A failed frame keeps whatever was selected (for diagnostics) but ``failed[b]`` is True and
-``reasons[b]`` says why; trackers must not use it (constant-motion fallback).
+``reasons[b]`` says why; trackers must not use it (constant-motion fallback). With ``relaxed_inconsistency`` a
+failed frame is first selected again under each larger bound in turn (``relaxed_bound[b]`` the one that passed).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from functools import lru_cache
@@ -118,6 +120,8 @@ class Correspondences:
         inconsistency: (B,N) forward-backward inconsistency of each row in pixels (0 in padded rows).
         failed: (B,) bool, True when frame b failed the selection rule.
         reasons: per frame, why it failed (None when it did not).
+        relaxed_bound: per frame, the relaxed bound (pixels) it was selected under after failing at
+            ``max_inconsistency`` (None: selected as usual, or failed at every bound).
     """
 
     pts_i: torch.Tensor
@@ -126,6 +130,7 @@ class Correspondences:
     inconsistency: torch.Tensor
     failed: torch.Tensor
     reasons: list[str | None]
+    relaxed_bound: list[float | None] = field(default_factory=list)
 
     @property
     def num_valid(self) -> torch.Tensor:
@@ -215,6 +220,7 @@ def select_correspondences(
     generator: torch.Generator | None = None,
     texture: torch.Tensor | None = None,
     min_texture: float = _DEFAULTS.min_texture,
+    relaxed_inconsistency: Sequence[float] = (),
 ) -> Correspondences:
     """Select up to ``num`` correspondences per frame pair from a forward flow.
 
@@ -233,10 +239,34 @@ def select_correspondences(
         texture: (B,1,H,W) Shi–Tomasi score of image i; with ``min_texture > 0`` pixels scoring below it are
             unusable (module docstring). Needed when ``min_texture > 0``.
         min_texture: see ``texture``.
+        relaxed_inconsistency: ascending bounds (pixels) above ``max_inconsistency``: a frame that fails the rule is
+            selected again under each in turn and keeps the first that passes (``relaxed_bound`` says which). Empty
+            by default here (the paper's rule); the tracker's default is :class:`SelectionConfig`'s.
 
     Returns:
         :class:`Correspondences` with (B,N,...) padded rows.
     """
+    args = (method, num, grid, min_valid_fraction, min_region_fraction, crop_top, generator, min_texture)
+    corr = _select(flow_fwd, inconsistency, max_inconsistency, texture, *args)
+    corr.relaxed_bound = [None] * flow_fwd.shape[0]
+    for bound in relaxed_inconsistency:
+        todo = corr.failed.nonzero()[:, 0]
+        if len(todo) == 0:
+            break
+        retry = _select(flow_fwd[todo], inconsistency[todo], bound, None if texture is None else texture[todo], *args)
+        for k, b in enumerate(todo.tolist()):
+            if not bool(retry.failed[k]):
+                corr.pts_i[b], corr.pts_j[b], corr.mask[b] = retry.pts_i[k], retry.pts_j[k], retry.mask[k]
+                corr.inconsistency[b], corr.failed[b], corr.reasons[b] = retry.inconsistency[k], False, None
+                corr.relaxed_bound[b] = float(bound)
+    return corr
+
+
+def _select(flow_fwd: torch.Tensor, inconsistency: torch.Tensor, max_inconsistency: float,
+            texture: torch.Tensor | None, method: SelectionMethod | str, num: int, grid: tuple[int, int],
+            min_valid_fraction: float, min_region_fraction: float, crop_top: float,
+            generator: torch.Generator | None, min_texture: float) -> Correspondences:
+    """:func:`select_correspondences` under one bound (its arguments, without ``relaxed_inconsistency``)."""
     KORNIA_CHECK_SHAPE(flow_fwd, ["B", "2", "H", "W"])
     KORNIA_CHECK_SHAPE(inconsistency, ["B", "1", "H", "W"])
     KORNIA_CHECK(inconsistency.shape[0] == flow_fwd.shape[0] and inconsistency.shape[-2:] == flow_fwd.shape[-2:],

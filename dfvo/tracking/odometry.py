@@ -48,7 +48,7 @@ from dfvo.matching.consistency import forward_backward_inconsistency
 from dfvo.matching.flow_refinement import FlowRefinementConfig
 from dfvo.matching.image_ops import shi_tomasi
 from dfvo.matching.pyramid_refinement import PyramidRefinementConfig
-from dfvo.matching.selection import Correspondences, select_correspondences
+from dfvo.matching.selection import select_correspondences
 from dfvo.tracking.config import PlanarMotion, ScaleMethod, TrackerConfig, TrackerMode
 from dfvo.tracking.covariance import length_log_variance, step_covariance
 from dfvo.tracking.diagnostics import FrameDiagnostics, TrackerUsed
@@ -270,25 +270,12 @@ class VisualOdometry:
                           "selecting without the texture test", stacklevel=3)
         texture = shi_tomasi(images[:-1], _REFINE.window, _REFINE.sigma) if min_texture > 0 else None
 
-        def select(bound: float, rows: slice | torch.Tensor = slice(None)) -> Correspondences:
-            return select_correspondences(flow_fwd[rows], incon[rows], method=sel.method.value,
-                                          num=sel.num_correspondences, grid=tuple(sel.grid), max_inconsistency=bound,
-                                          min_valid_fraction=sel.min_valid_fraction,
-                                          min_region_fraction=sel.min_region_fraction, crop_top=sel.crop_top,
-                                          texture=None if texture is None else texture[rows], min_texture=min_texture)
-
-        corr = select(sel.max_inconsistency)
-        relaxed: dict[int, float] = {}  # pair -> the relaxed bound it was selected under
-        for bound in sel.relaxed_inconsistency:
-            todo = corr.failed.nonzero()[:, 0]
-            if len(todo) == 0:
-                break
-            retry = select(bound, todo)
-            for k, b in enumerate(todo.tolist()):
-                if not bool(retry.failed[k]):
-                    corr.pts_i[b], corr.pts_j[b], corr.mask[b] = retry.pts_i[k], retry.pts_j[k], retry.mask[k]
-                    corr.inconsistency[b], corr.failed[b], corr.reasons[b] = retry.inconsistency[k], False, None
-                    relaxed[b] = bound
+        corr = select_correspondences(flow_fwd, incon, method=sel.method.value, num=sel.num_correspondences,
+                                      grid=tuple(sel.grid), max_inconsistency=sel.max_inconsistency,
+                                      min_valid_fraction=sel.min_valid_fraction,
+                                      min_region_fraction=sel.min_region_fraction, crop_top=sel.crop_top,
+                                      texture=texture, min_texture=min_texture,
+                                      relaxed_inconsistency=sel.relaxed_inconsistency)
         pi, pj, mask = corr.pts_i.to(torch.float64), corr.pts_j.to(torch.float64), corr.mask
         Kd = K.to(torch.float64)
         t1 = time.perf_counter()
@@ -311,7 +298,7 @@ class VisualOdometry:
                 grey_pair=None if grey is None else (grey[b:b + 1], grey[b + 1:b + 2]),
                 diagnostics=FrameDiagnostics(frame=self.frame + 1, num_correspondences=int(mask[b].sum()),
                                              selection_failed=bool(corr.failed[b]),
-                                             selection_max_inconsistency=relaxed.get(b)))
+                                             selection_max_inconsistency=corr.relaxed_bound[b]))
             res = self._finish_frame(state)
             res.diagnostics.time_selection = (t1 - t0) / B
             res.diagnostics.time_e_tracker = (t2 - t1) / B
