@@ -220,7 +220,7 @@ def select_correspondences(
     generator: torch.Generator | None = None,
     texture: torch.Tensor | None = None,
     min_texture: float = _DEFAULTS.min_texture,
-    relaxed_inconsistency: Sequence[float] = (),
+    relaxed_inconsistency: Sequence[float] = tuple(_DEFAULTS.relaxed_inconsistency),
 ) -> Correspondences:
     """Select up to ``num`` correspondences per frame pair from a forward flow.
 
@@ -240,8 +240,8 @@ def select_correspondences(
             unusable (module docstring). Needed when ``min_texture > 0``.
         min_texture: see ``texture``.
         relaxed_inconsistency: ascending bounds (pixels) above ``max_inconsistency``: a frame that fails the rule is
-            selected again under each in turn and keeps the first that passes (``relaxed_bound`` says which). Empty
-            by default here (the paper's rule); the tracker's default is :class:`SelectionConfig`'s.
+            selected again under each in turn and keeps the first that passes (``relaxed_bound`` says which);
+            ``()``: the paper's rule.
 
     Returns:
         :class:`Correspondences` with (B,N,...) padded rows.

@@ -84,7 +84,8 @@ def selection_mask(flow_fwd: torch.Tensor, flow_bwd: torch.Tensor, sel: FlowSele
     c = select_correspondences(flow_fwd[None].float(), incon, method=str(sel.method), num=sel.num_for(H, W),
                                grid=tuple(sel.grid), max_inconsistency=float(sel.max_inconsistency),
                                min_valid_fraction=float(sel.min_valid_fraction),
-                               min_region_fraction=float(sel.min_region_fraction), crop_top=float(sel.crop_top))
+                               min_region_fraction=float(sel.min_region_fraction), crop_top=float(sel.crop_top),
+                               relaxed_inconsistency=())  # the selection as configured, no retry
     pts = c.pts_i[0][c.mask[0]].round().long().cpu()
     mask = torch.zeros(H * W, dtype=torch.bool)
     mask[pts[:, 1] * W + pts[:, 0]] = True

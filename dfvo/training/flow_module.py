@@ -242,7 +242,7 @@ class FlowModule(L.LightningModule):
         fwd, bwd = resize_flow(fwd.float(), tuple(gt.shape[-2:])), resize_flow(bwd.float(), tuple(gt.shape[-2:]))
         err = flow_magnitude(fwd - gt)
         sel = select_correspondences(fwd, forward_backward_inconsistency(fwd, bwd), method="best_n",
-                                     num=SELECTED_CORRESPONDENCES)
+                                     num=SELECTED_CORRESPONDENCES, relaxed_inconsistency=())
         selected = []
         for b in range(fwd.shape[0]):
             pix = sel.pts_i[b][sel.mask[b]].long()
