@@ -1,5 +1,5 @@
-"""Training-time augmentation of depth/pose batches: horizontal flips and colour jitter (monodepth2's recipe), and
-cast shadows on the depth network's input.
+"""Training-time augmentation of depth/pose batches: horizontal flips and colour jitter (monodepth2's recipe), cast
+shadows on the depth network's input, and objects pasted into stereo pairs at a known depth.
 
 Convention:
     A batch holds ``image`` (B,3,H,W) and, as the task needs, ``image_prev``, ``image_next``, ``image_right``
@@ -24,6 +24,21 @@ Convention:
       of a KITTI 07 frame, the shipped one by up to 8 %: docs/training.md). The pose network sees the images without
       shadows (a shadow that moved with the camera would be a false motion cue), and the losses compare the images
       as they are.
+    - **Pasted objects** (geometry and appearance, every view of the stereo pair): with ``paste_prob`` a real sample
+      (one with a known ``camera_height`` > 0: the KITTI samples of a mixed batch) gets 1..``paste_max`` upright
+      rectangles facing the camera, each at a depth ``Z`` drawn log-uniformly from ``paste_depth`` (metres),
+      ``paste_width`` wide and ``paste_height`` tall (metres), standing on the road: its lower edge at the row
+      ``cy + fy h / Z`` of a level camera ``h`` above the ground, its centre at a random column. Its texture is a
+      crop (of random size and place, so from nearly flat to busy) of one of the batch's images, scaled by a
+      brightness factor in ``paste_gain``. The same rectangle is drawn into the right image shifted by the pair's
+      disparity ``fx t_x / Z`` (a plane parallel to the image plane of a rectified pair maps by that shift), so the
+      stereo loss sees a consistent object, and ``depth`` (created, 0 = no truth, when the batch has none) is set to
+      ``Z`` on its pixels, which ``model.w_depth_supervised`` supervises. Nearer objects are drawn last (they
+      occlude farther ones); an object hides whatever the image showed there, even something nearer. The temporal
+      views (``image_prev``, ``image_next``) are left without it: pasting is meant for stereo training
+      (``model.temporal=false``); with temporal views the per-pixel minimum over views picks the stereo partner
+      there. Why: the networks trained on drive 0001 draw large near objects of little texture (a van 3-6 m away)
+      far away on the held-out drive 0005 (docs/training.md); one drive has few of them.
 
 Random draws come from a ``torch.Generator`` the caller seeds (the depth module seeds it with the data seed and
 the global step), so a resumed run draws the same augmentations as an uninterrupted one.
@@ -35,11 +50,12 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from kornia.core.check import KORNIA_CHECK, KORNIA_CHECK_SHAPE
 from kornia.enhance import adjust_hue, adjust_saturation
 
 __all__ = ["DepthAugmentConfig", "IMAGE_KEYS", "flip_batch", "jitter_images", "shadow_masks", "cast_shadows",
-           "augment_depth_batch"]
+           "paste_objects", "augment_depth_batch"]
 
 IMAGE_KEYS = ("image", "image_prev", "image_next", "image_right")
 LUMA = (0.299, 0.587, 0.114)
@@ -57,6 +73,11 @@ class DepthAugmentConfig:
         gray_prob: probability of greyscale network inputs.
         shadow_prob: probability of casting shadows on a sample's depth-network input (0: off, the default).
         shadow_factor: (low, high) range of the brightness factor inside a shadow (0.4 keeps 40 % of the light).
+        paste_prob: probability of pasting objects into a real sample's stereo pair (0: off, the default).
+        paste_max: at most this many objects a sample (1..paste_max drawn uniformly).
+        paste_depth: (near, far) metres, drawn log-uniformly.
+        paste_width, paste_height: (low, high) metres, drawn uniformly.
+        paste_gain: (low, high) brightness factor of an object's texture.
     """
 
     flip_prob: float = 0.5
@@ -68,6 +89,12 @@ class DepthAugmentConfig:
     gray_prob: float = 0.0
     shadow_prob: float = 0.0
     shadow_factor: tuple[float, float] = (0.35, 0.75)
+    paste_prob: float = 0.0
+    paste_max: int = 2
+    paste_depth: tuple[float, float] = (3.0, 20.0)
+    paste_width: tuple[float, float] = (1.5, 6.0)
+    paste_height: tuple[float, float] = (1.0, 3.0)
+    paste_gain: tuple[float, float] = (0.3, 1.1)
 
     def __post_init__(self) -> None:
         values = list(self.shadow_factor)
@@ -75,7 +102,14 @@ class DepthAugmentConfig:
         if not 0.0 < lo <= hi <= 1.0:
             raise ValueError(f"model.augment.shadow_factor={list(self.shadow_factor)}; expected [low, high] with "
                              "0 < low <= high <= 1")
-        for name in ("flip_prob", "jitter_prob", "gray_prob", "shadow_prob"):
+        for name in ("paste_depth", "paste_width", "paste_height", "paste_gain"):
+            values = list(getattr(self, name))
+            lo, hi = (float(values[0]), float(values[1])) if len(values) == 2 else (-1.0, -1.0)
+            if not 0.0 < lo <= hi:
+                raise ValueError(f"model.augment.{name}={values}; expected [low, high] with 0 < low <= high")
+        if int(self.paste_max) < 1:
+            raise ValueError(f"model.augment.paste_max={self.paste_max}; expected at least 1 object a sample")
+        for name in ("flip_prob", "jitter_prob", "gray_prob", "shadow_prob", "paste_prob"):
             value = float(getattr(self, name))
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"model.augment.{name}={value}; expected a probability in [0, 1]")
@@ -197,10 +231,80 @@ def cast_shadows(image: torch.Tensor, cfg: DepthAugmentConfig, generator: torch.
     return image * gain.to(device=image.device, dtype=image.dtype)
 
 
+def _draw(n: int, bounds: tuple[float, float], generator: torch.Generator, log: bool = False) -> torch.Tensor:
+    lo, hi = (float(x) for x in bounds)
+    u = torch.rand(n, generator=generator, dtype=torch.float64)
+    return torch.exp(math.log(lo) + u * (math.log(hi) - math.log(lo))) if log else lo + u * (hi - lo)
+
+
+def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, generator: torch.Generator
+                  ) -> dict[str, torch.Tensor]:
+    """``batch`` with objects pasted into the stereo pairs of the real samples drawn with ``cfg.paste_prob`` (module
+    docstring): ``image`` and ``image_right`` (B,3,H,W) get the objects, ``depth`` (B,1,H,W) their depth ``Z`` on
+    their pixels (created with 0 = no truth elsewhere when the batch has none). Needs ``K`` (B,3,3),
+    ``T_right_left`` (B,4,4) of a rectified pair (no rotation) and ``camera_height`` (B,) metres (> 0 marks a real
+    sample). Returns a new dict; the input is not modified."""
+    for key in ("image_right", "T_right_left", "K", "camera_height"):
+        if key not in batch:
+            raise ValueError(f"model.augment.paste_prob={cfg.paste_prob}: the batch has no {key!r}; pasted objects "
+                             "need stereo pairs (model.stereo=true), K and the camera height (data.camera_height)")
+    image, right, K, T = batch["image"], batch["image_right"], batch["K"], batch["T_right_left"]
+    KORNIA_CHECK_SHAPE(image, ["B", "3", "H", "W"])
+    B, _, H, W = image.shape
+    height = batch["camera_height"].reshape(B)
+    use = (torch.rand(B, generator=generator, dtype=torch.float64) < cfg.paste_prob) & (height.cpu() > 0)
+    count = torch.randint(1, int(cfg.paste_max) + 1, (B,), generator=generator)
+    n = int(cfg.paste_max)
+    Z, width = _draw(B * n, cfg.paste_depth, generator, log=True), _draw(B * n, cfg.paste_width, generator)
+    tall, gain = _draw(B * n, cfg.paste_height, generator), _draw(B * n, cfg.paste_gain, generator)
+    centre = torch.rand(B * n, generator=generator, dtype=torch.float64) * (W - 1)
+    source = torch.randint(0, B, (B * n,), generator=generator)
+    crop = torch.exp(math.log(0.03) + torch.rand(B * n, 2, generator=generator, dtype=torch.float64)
+                     * (math.log(0.5) - math.log(0.03)))  # the texture crop's width, height: fractions of the image
+    corner = torch.rand(B * n, 2, generator=generator, dtype=torch.float64) * (1.0 - crop)
+    if not bool(use.any()):
+        return dict(batch)
+    rotation = T[:, :3, :3].double().cpu() - torch.eye(3, dtype=torch.float64)
+    KORNIA_CHECK(bool((rotation[use].abs() <= 1e-4).all()), "model.augment.paste_prob > 0 needs rectified stereo "
+                 "pairs (T_right_left without rotation)")
+    out = dict(batch)
+    depth = batch.get("depth")
+    depth = torch.zeros(B, 1, H, W, dtype=image.dtype, device=image.device) if depth is None else depth.clone()
+    views = {"image": image.clone(), "image_right": right.clone()}
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    Kd, Td = K.double().cpu(), T.double().cpu()
+    for b in torch.nonzero(use).flatten().tolist():
+        fx, fy, cy = float(Kd[b, 0, 0]), float(Kd[b, 1, 1]), float(Kd[b, 1, 2])
+        objects = sorted(range(b * n, b * n + int(count[b])), key=lambda k: -float(Z[k]))  # far first
+        for k in objects:
+            z = float(Z[k])
+            half = 0.5 * fx * float(width[k]) / z
+            bottom = cy + fy * float(height[b]) / z
+            top = bottom - fy * float(tall[k]) / z
+            t = (v - top) / (bottom - top)  # 0..1 down the object
+            for key, shift in (("image", 0.0), ("image_right", fx * float(Td[b, 0, 3]) / z)):
+                s = (u - shift - (float(centre[k]) - half)) / (2.0 * half)  # 0..1 across the object
+                inside = (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+                if not bool(inside.any()):
+                    continue
+                x = (float(corner[k, 0]) + s * float(crop[k, 0])) * 2.0 - 1.0  # grid_sample units, align_corners=True
+                y = (float(corner[k, 1]) + t * float(crop[k, 1])) * 2.0 - 1.0
+                grid = torch.stack([x, y], -1)[None].to(device=image.device, dtype=image.dtype)
+                texture = F.grid_sample(image[int(source[k])][None], grid, mode="bilinear", align_corners=True)[0]
+                texture = (texture * float(gain[k])).clamp(0, 1)
+                mask = inside.to(image.device)
+                views[key][b] = torch.where(mask, texture, views[key][b])
+                if key == "image":
+                    depth[b, 0] = torch.where(mask, torch.full_like(depth[b, 0], z), depth[b, 0])
+    out.update(views)
+    out["depth"] = depth
+    return out
+
+
 def augment_depth_batch(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, generator: torch.Generator
                         ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-    """Flip (geometry) then jitter (network inputs) a depth/pose training batch, and cast shadows on the depth
-    network's input (``cfg.shadow_prob`` > 0).
+    """Flip (geometry), paste objects (``cfg.paste_prob`` > 0), then jitter (network inputs) a depth/pose training
+    batch, and cast shadows on the depth network's input (``cfg.shadow_prob`` > 0).
 
     Returns:
         ``(batch, net_inputs)``: the (possibly mirrored) batch the losses use, and the jittered images
@@ -210,6 +314,8 @@ def augment_depth_batch(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig,
     B = batch["image"].shape[0]
     flip = torch.rand(B, generator=generator, dtype=torch.float64) < cfg.flip_prob
     batch = flip_batch(batch, flip)
+    if cfg.paste_prob > 0:  # drawn only when on: runs without pasted objects keep their random stream
+        batch = paste_objects(batch, cfg, generator)
     images = {k: batch[k] for k in IMAGE_KEYS if k in batch}
     net_inputs = jitter_images(images, cfg, generator)
     if cfg.shadow_prob > 0:  # drawn after the jitter: runs without shadows keep their random stream

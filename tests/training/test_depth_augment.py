@@ -189,3 +189,94 @@ def test_shadows_reach_the_depth_network_only_and_keep_the_other_draws(batch: di
     _, net = augment_depth_batch(sample, module.augment, torch.Generator().manual_seed(0))
     assert torch.equal(seen["depth"], net["image_depth"])
     assert torch.allclose(seen["pose"], sample["image"], atol=1e-6)  # no jitter, no shadow for the pose network
+
+
+def _ramp_pair(B: int, fx: float = 180.0, baseline: float = 0.54) -> dict:
+    """B rectified KITTI-like stereo samples at H x W whose images are linear ramps (bilinear warps of a ramp are
+    exact), a level camera 1.65 m above the road, no true depth."""
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    ramp = torch.stack([0.1 + 0.8 * u / W, 0.1 + 0.8 * v / H, 0.5 + 0.3 * (u / W - v / H)])
+    K = torch.tensor([[fx, 0.0, W / 2 - 0.5], [0.0, fx, 0.45 * H], [0.0, 0.0, 1.0]])
+    T = torch.eye(4)
+    T[0, 3] = -baseline
+    return {"image": ramp[None].repeat(B, 1, 1, 1) * torch.linspace(0.8, 1.0, B).view(B, 1, 1, 1),
+            "image_right": torch.full((B, 3, H, W), 0.5), "K": K[None].repeat(B, 1, 1),
+            "T_right_left": T[None].repeat(B, 1, 1), "camera_height": torch.full((B,), 1.65)}
+
+
+def test_a_pasted_object_stands_on_the_road_at_its_depth_in_both_views() -> None:
+    """Each pasted object is written into ``depth`` at one Z within ``paste_depth``; warping the right image into the
+    left one by that depth (the stereo loss's own reprojection) reproduces the object exactly; its lowest row is the
+    road's at Z (``cy + fy h / Z``, camera h above a level road); a sample without a camera height is untouched."""
+    from dfvo.training.augment import paste_objects
+
+    B = 8
+    batch = _ramp_pair(B)
+    batch["camera_height"][-1] = 0.0  # a synthetic sample of a mixed batch
+    cfg = DepthAugmentConfig(paste_prob=1.0, paste_max=1, paste_depth=(4.0, 12.0), paste_gain=(0.5, 0.9))
+    out = paste_objects(batch, cfg, torch.Generator().manual_seed(3))
+    again = paste_objects(batch, cfg, torch.Generator().manual_seed(3))
+    assert all(torch.equal(out[k], again[k]) for k in ("image", "image_right", "depth"))
+    assert torch.equal(out["image"][-1], batch["image"][-1]) and not bool((out["depth"][-1] > 0).any())
+    fy, cy = float(batch["K"][0, 1, 1]), float(batch["K"][0, 1, 2])
+    checked = 0
+    for b in range(B - 1):
+        d = out["depth"][b, 0]
+        on = d > 0
+        assert bool(on.any()), f"sample {b}: nothing pasted"
+        z = float(d[on][0])
+        assert torch.all(d[on] == z) and 4.0 <= z <= 12.0
+        assert not torch.equal(out["image"][b], batch["image"][b]) and not torch.equal(out["image_right"][b],
+                                                                                        batch["image_right"][b])
+        rows = torch.nonzero(on.any(1)).flatten()
+        bottom = cy + fy * 1.65 / z
+        if bottom < H - 1:
+            assert abs(int(rows.max()) - bottom) <= 1.0
+        else:
+            assert int(rows.max()) == H - 1
+        rep = reproject(out["image_right"][b:b + 1], out["depth"][b:b + 1].clamp_min(0.1),
+                        batch["T_right_left"][b:b + 1], batch["K"][b:b + 1])
+        inner = on & torch.roll(on, 2, 1) & torch.roll(on, -2, 1)  # away from the object's left and right edges
+        inner[:, :2] = inner[:, -2:] = False
+        inner &= rep.valid[0, 0]
+        if int(inner.sum()) < 20:
+            continue
+        err = (rep.warped[0] - out["image"][b]).abs().amax(0)[inner]
+        assert float(err.max()) < 1e-4, f"sample {b}: the right view's object is off by {float(err.max()):.2e}"
+        # and not by chance: the same warp with a wrong depth misses it
+        wrong = reproject(out["image_right"][b:b + 1], out["depth"][b:b + 1].clamp_min(0.1) * 1.5,
+                          batch["T_right_left"][b:b + 1], batch["K"][b:b + 1])
+        assert float((wrong.warped[0] - out["image"][b]).abs().amax(0)[inner & wrong.valid[0, 0]].max()) > 1e-2
+        checked += 1
+    assert checked >= 4
+
+
+def test_pasting_is_drawn_only_when_on_and_refuses_what_it_cannot_do() -> None:
+    """``paste_prob`` 0 leaves the flips and jitter of a seed as they were; pasting into a batch without a stereo
+    partner or camera height, or into an unrectified pair, says what is missing; bad ranges are refused."""
+    from dfvo.training.augment import paste_objects
+
+    batch = _ramp_pair(2)
+    plain = augment_depth_batch(batch, DepthAugmentConfig(), torch.Generator().manual_seed(1))
+    off = augment_depth_batch(batch, DepthAugmentConfig(paste_prob=0.0), torch.Generator().manual_seed(1))
+    assert torch.equal(plain[1]["image"], off[1]["image"]) and "depth" not in off[0]
+    on, net = augment_depth_batch(batch, DepthAugmentConfig(paste_prob=1.0, jitter_prob=0.0),
+                                  torch.Generator().manual_seed(1))
+    assert bool((on["depth"] > 0).any()) and torch.allclose(net["image"], on["image"])
+    with pytest.raises(ValueError, match="'camera_height'"):
+        paste_objects({k: v for k, v in batch.items() if k != "camera_height"}, DepthAugmentConfig(paste_prob=1.0),
+                      torch.Generator())
+    with pytest.raises(ValueError, match="'image_right'"):
+        paste_objects({k: v for k, v in batch.items() if k != "image_right"}, DepthAugmentConfig(paste_prob=1.0),
+                      torch.Generator())
+    turned = dict(batch)
+    turned["T_right_left"] = batch["T_right_left"].clone()
+    turned["T_right_left"][:, :3, :3] = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(Exception, match="rectified"):
+        paste_objects(turned, DepthAugmentConfig(paste_prob=1.0), torch.Generator())
+    with pytest.raises(ValueError, match="model.augment.paste_depth"):
+        DepthAugmentConfig(paste_depth=(10.0, 3.0))
+    with pytest.raises(ValueError, match="model.augment.paste_max"):
+        DepthAugmentConfig(paste_max=0)
+    with pytest.raises(ValueError, match="model.augment.paste_prob"):
+        DepthAugmentConfig(paste_prob=1.5)
