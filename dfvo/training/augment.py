@@ -243,11 +243,14 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
     docstring): ``image`` and ``image_right`` (B,3,H,W) get the objects, ``depth`` (B,1,H,W) their depth ``Z`` on
     their pixels (created with 0 = no truth elsewhere when the batch has none). Needs ``K`` (B,3,3),
     ``T_right_left`` (B,4,4) of a rectified pair (no rotation) and ``camera_height`` (B,) metres (> 0 marks a real
-    sample). Returns a new dict; the input is not modified."""
-    for key in ("image_right", "T_right_left", "K", "camera_height"):
+    sample; a batch without it has no real sample and is returned as it is: the depth module checks that the data
+    gives the height). Returns a new dict; the input is not modified."""
+    if "camera_height" not in batch:  # no real sample in this batch (a mixed batch of synthetic samples alone)
+        return dict(batch)
+    for key in ("image_right", "T_right_left", "K"):
         if key not in batch:
             raise ValueError(f"model.augment.paste_prob={cfg.paste_prob}: the batch has no {key!r}; pasted objects "
-                             "need stereo pairs (model.stereo=true), K and the camera height (data.camera_height)")
+                             "need stereo pairs (model.stereo=true) and K")
     image, right, K, T = batch["image"], batch["image_right"], batch["K"], batch["T_right_left"]
     KORNIA_CHECK_SHAPE(image, ["B", "3", "H", "W"])
     B, _, H, W = image.shape

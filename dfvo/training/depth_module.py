@@ -92,6 +92,13 @@ class DepthPoseModule(L.LightningModule):
         self.pose_net = PoseNet() if self.temporal else None
         self.augment = m.augment
         self.augment_seed = int(cfg.data.seed) if "data" in cfg else 0
+        if self.augment is not None and self.augment.paste_prob > 0 and "data" in cfg:
+            height = cfg.data.get("camera_height")
+            if not self.stereo or height is None:
+                raise ValueError(f"model.augment.paste_prob={self.augment.paste_prob} pastes objects into real stereo "
+                                 f"pairs standing on the road: it needs model.stereo=true (got {self.stereo}) and "
+                                 f"data with a camera height (data=kitti_raw or kitti_raw_synthetic with "
+                                 f"data.camera_height; got data={cfg.data.get('kind')}, camera_height={height})")
         # the steps and whole epochs trained before this run when it continues another from its weights
         # (continue_from, dfvo.training.continuation): the rate schedule and the exports count the whole run
         self.steps_before, self.epochs_before = 0, 0

@@ -252,8 +252,9 @@ def test_a_pasted_object_stands_on_the_road_at_its_depth_in_both_views() -> None
 
 
 def test_pasting_is_drawn_only_when_on_and_refuses_what_it_cannot_do() -> None:
-    """``paste_prob`` 0 leaves the flips and jitter of a seed as they were; pasting into a batch without a stereo
-    partner or camera height, or into an unrectified pair, says what is missing; bad ranges are refused."""
+    """``paste_prob`` 0 leaves the flips and jitter of a seed as they were; a batch without real samples (no camera
+    height) is left as it is; a batch without a stereo partner, an unrectified pair, a training config without
+    stereo or a camera height and bad ranges are refused with what is missing."""
     from dfvo.training.augment import paste_objects
 
     batch = _ramp_pair(2)
@@ -263,9 +264,9 @@ def test_pasting_is_drawn_only_when_on_and_refuses_what_it_cannot_do() -> None:
     on, net = augment_depth_batch(batch, DepthAugmentConfig(paste_prob=1.0, jitter_prob=0.0),
                                   torch.Generator().manual_seed(1))
     assert bool((on["depth"] > 0).any()) and torch.allclose(net["image"], on["image"])
-    with pytest.raises(ValueError, match="'camera_height'"):
-        paste_objects({k: v for k, v in batch.items() if k != "camera_height"}, DepthAugmentConfig(paste_prob=1.0),
-                      torch.Generator())
+    synthetic_only = {k: v for k, v in batch.items() if k != "camera_height"}  # a mixed batch without real samples
+    kept = paste_objects(synthetic_only, DepthAugmentConfig(paste_prob=1.0), torch.Generator())
+    assert torch.equal(kept["image"], batch["image"]) and "depth" not in kept
     with pytest.raises(ValueError, match="'image_right'"):
         paste_objects({k: v for k, v in batch.items() if k != "image_right"}, DepthAugmentConfig(paste_prob=1.0),
                       torch.Generator())
@@ -280,3 +281,13 @@ def test_pasting_is_drawn_only_when_on_and_refuses_what_it_cannot_do() -> None:
         DepthAugmentConfig(paste_max=0)
     with pytest.raises(ValueError, match="model.augment.paste_prob"):
         DepthAugmentConfig(paste_prob=1.5)
+    from dfvo.training.depth_module import DepthPoseModule
+    for data, model in (({"kind": "synthetic", "seed": 0}, {"stereo": True}),
+                        ({"kind": "kitti_raw", "seed": 0, "camera_height": None}, {"stereo": True}),
+                        ({"kind": "kitti_raw", "seed": 0, "camera_height": 1.65}, {"stereo": False, "temporal": True})):
+        cfg = {"model": {"name": "depth_stereo", "temporal": False, **model, "augment": {"paste_prob": 0.5}},
+               "data": data}
+        with pytest.raises(ValueError, match="model.augment.paste_prob=0.5 pastes objects"):
+            DepthPoseModule(cfg)
+    DepthPoseModule({"model": {"name": "depth_stereo", "temporal": False, "augment": {"paste_prob": 0.5}},
+                     "data": {"kind": "kitti_raw", "seed": 0, "camera_height": 1.65}})
