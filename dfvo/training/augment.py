@@ -29,8 +29,10 @@ Convention:
       rectangles facing the camera, each at a depth ``Z`` drawn log-uniformly from ``paste_depth`` (metres),
       ``paste_width`` wide and ``paste_height`` tall (metres), standing on the road: its lower edge at the row
       ``cy + fy h / Z`` of a level camera ``h`` above the ground, its centre at a random column. Its texture is a
-      crop (of random size and place, so from nearly flat to busy) of one of the batch's images, scaled by a
-      brightness factor in ``paste_gain``. The same rectangle is drawn into the right image shifted by the pair's
+      crop of one of the batch's images at a random place, ``paste_texture_scale`` source pixels per object pixel
+      (as large as the image at most), so near and far objects show a real image's detail alike (a near object made
+      of a magnified small crop would be a blur, and teach that blur is near), scaled by a brightness factor in
+      ``paste_gain``. The same rectangle is drawn into the right image shifted by the pair's
       disparity ``fx t_x / Z`` (a plane parallel to the image plane of a rectified pair maps by that shift), so the
       stereo loss sees a consistent object, and ``depth`` (created, 0 = no truth, when the batch has none) is set to
       ``Z`` on its pixels, which ``model.w_depth_supervised`` supervises. Nearer objects are drawn last (they
@@ -78,6 +80,7 @@ class DepthAugmentConfig:
         paste_depth: (near, far) metres, drawn log-uniformly.
         paste_width, paste_height: (low, high) metres, drawn uniformly.
         paste_gain: (low, high) brightness factor of an object's texture.
+        paste_texture_scale: (low, high) source-image pixels per object pixel of its texture, drawn log-uniformly.
     """
 
     flip_prob: float = 0.5
@@ -95,6 +98,7 @@ class DepthAugmentConfig:
     paste_width: tuple[float, float] = (1.5, 6.0)
     paste_height: tuple[float, float] = (1.0, 3.0)
     paste_gain: tuple[float, float] = (0.3, 1.1)
+    paste_texture_scale: tuple[float, float] = (0.5, 2.0)
 
     def __post_init__(self) -> None:
         values = list(self.shadow_factor)
@@ -102,7 +106,7 @@ class DepthAugmentConfig:
         if not 0.0 < lo <= hi <= 1.0:
             raise ValueError(f"model.augment.shadow_factor={list(self.shadow_factor)}; expected [low, high] with "
                              "0 < low <= high <= 1")
-        for name in ("paste_depth", "paste_width", "paste_height", "paste_gain"):
+        for name in ("paste_depth", "paste_width", "paste_height", "paste_gain", "paste_texture_scale"):
             values = list(getattr(self, name))
             lo, hi = (float(values[0]), float(values[1])) if len(values) == 2 else (-1.0, -1.0)
             if not 0.0 < lo <= hi:
@@ -262,9 +266,8 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
     tall, gain = _draw(B * n, cfg.paste_height, generator), _draw(B * n, cfg.paste_gain, generator)
     centre = torch.rand(B * n, generator=generator, dtype=torch.float64) * (W - 1)
     source = torch.randint(0, B, (B * n,), generator=generator)
-    crop = torch.exp(math.log(0.03) + torch.rand(B * n, 2, generator=generator, dtype=torch.float64)
-                     * (math.log(0.5) - math.log(0.03)))  # the texture crop's width, height: fractions of the image
-    corner = torch.rand(B * n, 2, generator=generator, dtype=torch.float64) * (1.0 - crop)
+    magnify = _draw(B * n, cfg.paste_texture_scale, generator, log=True)  # source pixels per object pixel
+    place = torch.rand(B * n, 2, generator=generator, dtype=torch.float64)  # where the crop lies in its image
     if not bool(use.any()):
         return dict(batch)
     rotation = T[:, :3, :3].double().cpu() - torch.eye(3, dtype=torch.float64)
@@ -285,13 +288,18 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
             bottom = cy + fy * float(height[b]) / z
             top = bottom - fy * float(tall[k]) / z
             t = (v - top) / (bottom - top)  # 0..1 down the object
+            # the texture crop (fractions of the source image): the object's own size in pixels times the draw, so
+            # its texture keeps a real image's detail at every depth (a near object is not a magnified blur)
+            crop = [min(1.0, 2.0 * half * float(magnify[k]) / (W - 1)),
+                    min(1.0, (bottom - top) * float(magnify[k]) / (H - 1))]
+            corner = [float(place[k, 0]) * (1.0 - crop[0]), float(place[k, 1]) * (1.0 - crop[1])]
             for key, shift in (("image", 0.0), ("image_right", fx * float(Td[b, 0, 3]) / z)):
                 s = (u - shift - (float(centre[k]) - half)) / (2.0 * half)  # 0..1 across the object
                 inside = (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
                 if not bool(inside.any()):
                     continue
-                x = (float(corner[k, 0]) + s * float(crop[k, 0])) * 2.0 - 1.0  # grid_sample units, align_corners=True
-                y = (float(corner[k, 1]) + t * float(crop[k, 1])) * 2.0 - 1.0
+                x = (corner[0] + s * crop[0]) * 2.0 - 1.0  # grid_sample units, align_corners=True
+                y = (corner[1] + t * crop[1]) * 2.0 - 1.0
                 grid = torch.stack([x, y], -1)[None].to(device=image.device, dtype=image.dtype)
                 texture = F.grid_sample(image[int(source[k])][None], grid, mode="bilinear", align_corners=True)[0]
                 texture = (texture * float(gain[k])).clamp(0, 1)

@@ -219,7 +219,7 @@ def test_a_pasted_object_stands_on_the_road_at_its_depth_in_both_views() -> None
     assert all(torch.equal(out[k], again[k]) for k in ("image", "image_right", "depth"))
     assert torch.equal(out["image"][-1], batch["image"][-1]) and not bool((out["depth"][-1] > 0).any())
     fy, cy = float(batch["K"][0, 1, 1]), float(batch["K"][0, 1, 2])
-    checked = 0
+    checked = scaled = 0
     for b in range(B - 1):
         d = out["depth"][b, 0]
         on = d > 0
@@ -229,6 +229,16 @@ def test_a_pasted_object_stands_on_the_road_at_its_depth_in_both_views() -> None
         assert not torch.equal(out["image"][b], batch["image"][b]) and not torch.equal(out["image_right"][b],
                                                                                         batch["image_right"][b])
         rows = torch.nonzero(on.any(1)).flatten()
+        cols = torch.nonzero(on.any(0)).flatten()
+        if len(cols) < W // 2 and len(cols) > 4:  # its texture at 0.5-2 source pixels a pixel, times the gain 0.5-0.9
+            r = int(rows[len(rows) // 2])
+            inside = on[r, int(cols[1]):int(cols[-2]) + 1]
+            assert bool(inside.all())
+            row = out["image"][b, 0, r, int(cols[1]):int(cols[-2]) + 1]
+            slope = row[1:] - row[:-1]
+            scaled += 1
+            ratio = float(slope.mean()) / float(batch["image"][b, 0, 0, 1] - batch["image"][b, 0, 0, 0])
+            assert 0.25 - 1e-3 <= ratio <= 1.8 + 1e-3, f"sample {b}: texture magnified {ratio:.2f}x the source's detail"
         bottom = cy + fy * 1.65 / z
         if bottom < H - 1:
             assert abs(int(rows.max()) - bottom) <= 1.0
@@ -248,7 +258,7 @@ def test_a_pasted_object_stands_on_the_road_at_its_depth_in_both_views() -> None
                           batch["T_right_left"][b:b + 1], batch["K"][b:b + 1])
         assert float((wrong.warped[0] - out["image"][b]).abs().amax(0)[inner & wrong.valid[0, 0]].max()) > 1e-2
         checked += 1
-    assert checked >= 4
+    assert checked >= 4 and scaled >= 2
 
 
 def test_pasting_is_drawn_only_when_on_and_refuses_what_it_cannot_do() -> None:
