@@ -178,12 +178,15 @@ def test_depth_small_smoke(tmp_path: Path, kitti_raw_root: Path) -> None:
 
 
 def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path: Path) -> None:
-    """depth_scene_shadow starts from depth_scene's export and depth_small distils from depth_scene_shadow's, both in
-    the runs folder the campaign passes (``runs_dir``, ``~`` expanded), where a new machine's queue restores a
-    finished run's export (tests/training/test_campaign.py)."""
+    """depth_scene_shadow starts from depth_scene's export, depth_small distils from depth_scene_shadow's and
+    depth_paste starts from it, all in the runs folder the campaign passes (``runs_dir``, ``~`` expanded), where a
+    new machine's queue restores a finished run's export (tests/training/test_campaign.py)."""
     shadow = model_config(_compose("experiment=depth_scene_shadow", f"runs_dir={tmp_path}"))
     assert shadow.init_from == str(tmp_path / "depth_scene" / "weights.safetensors")
     assert shadow.augment.shadow_prob == 0.5
+    paste = model_config(_compose("experiment=depth_paste", f"runs_dir={tmp_path}"))
+    assert paste.init_from == str(tmp_path / "depth_scene_shadow" / "weights.safetensors")
+    assert paste.augment.paste_prob == 0.5 and not paste.temporal and paste.w_depth_supervised > 0
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
     assert small.width_multiplier == 0.5 and small.w_distill > 0
