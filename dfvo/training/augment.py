@@ -27,20 +27,20 @@ Convention:
     - **Pasted objects** (geometry and appearance, every view of the stereo pair): with ``paste_prob`` a real sample
       (one with a known ``camera_height`` > 0: the KITTI samples of a mixed batch) gets 1..``paste_max`` upright
       rectangles facing the camera, each at a depth ``Z`` drawn log-uniformly from ``paste_depth`` (metres),
-      ``paste_width`` wide and ``paste_height`` tall (metres), standing on the road: its lower edge at the row
-      ``cy + fy h / Z`` of a level camera ``h`` above the ground, its centre at a random column. Its texture is a
-      crop of one of the batch's images at a random place, ``paste_texture_scale`` source pixels per object pixel
-      (as large as the image at most), so near and far objects show a real image's detail alike (a near object made
-      of a magnified small crop would be a blur, and teach that blur is near), scaled by a brightness factor in
-      ``paste_gain``. The same rectangle is drawn into the right image shifted by the pair's
+      ``paste_width`` wide and ``paste_height`` tall (metres), standing on the road: its lower edge at the row ``cy +
+      fy h / Z`` of a level camera ``h`` above the ground, its centre at a random column. Its texture is a crop of one
+      of the batch's images at a random place (within ``paste_source_rows`` of its height), ``paste_texture_scale``
+      source pixels per object pixel (as large as the image at most), so near and far objects show a real image's
+      detail alike (a near object made of a magnified small crop would be a blur, and teach that blur is near), scaled
+      by a brightness factor in ``paste_gain``. The same rectangle is drawn into the right image shifted by the pair's
       disparity ``fx t_x / Z`` (a plane parallel to the image plane of a rectified pair maps by that shift), so the
       stereo loss sees a consistent object, and ``depth`` (created, 0 = no truth, when the batch has none) is set to
-      ``Z`` on its pixels, which ``model.w_depth_supervised`` supervises. Nearer objects are drawn last (they
-      occlude farther ones); an object hides whatever the image showed there, even something nearer. The temporal
-      views (``image_prev``, ``image_next``) are left without it: pasting is meant for stereo training
-      (``model.temporal=false``); with temporal views the per-pixel minimum over views picks the stereo partner
-      there. Why: the networks trained on drive 0001 draw large near objects of little texture (a van 3-6 m away)
-      far away on the held-out drive 0005 (docs/training.md); one drive has few of them.
+      ``Z`` on its pixels, which ``model.w_depth_supervised`` supervises. Nearer objects are drawn last (they occlude
+      farther ones); an object hides whatever the image showed there, even something nearer. The temporal views
+      (``image_prev``, ``image_next``) are left without it: pasting is meant for stereo training
+      (``model.temporal=false``); with temporal views the per-pixel minimum over views picks the stereo partner there.
+      Why: the networks trained on drive 0001 draw large near objects of little texture (a van 3-6 m away) far away on
+      the held-out drive 0005 (docs/training.md); one drive has few of them.
 
 Random draws come from a ``torch.Generator`` the caller seeds (the depth module seeds it with the data seed and
 the global step), so a resumed run draws the same augmentations as an uninterrupted one.
@@ -81,6 +81,8 @@ class DepthAugmentConfig:
         paste_width, paste_height: (low, high) metres, drawn uniformly.
         paste_gain: (low, high) brightness factor of an object's texture.
         paste_texture_scale: (low, high) source-image pixels per object pixel of its texture, drawn log-uniformly.
+        paste_source_rows: (top, bottom) fractions of the source image's height the texture crops come from
+            ([0.5, 1]: its lower half, where a road camera sees what is near).
     """
 
     flip_prob: float = 0.5
@@ -99,6 +101,7 @@ class DepthAugmentConfig:
     paste_height: tuple[float, float] = (1.0, 3.0)
     paste_gain: tuple[float, float] = (0.3, 1.1)
     paste_texture_scale: tuple[float, float] = (0.5, 2.0)
+    paste_source_rows: tuple[float, float] = (0.0, 1.0)
 
     def __post_init__(self) -> None:
         values = list(self.shadow_factor)
@@ -111,6 +114,11 @@ class DepthAugmentConfig:
             lo, hi = (float(values[0]), float(values[1])) if len(values) == 2 else (-1.0, -1.0)
             if not 0.0 < lo <= hi:
                 raise ValueError(f"model.augment.{name}={values}; expected [low, high] with 0 < low <= high")
+        values = list(self.paste_source_rows)
+        lo, hi = (float(values[0]), float(values[1])) if len(values) == 2 else (-1.0, -1.0)
+        if not 0.0 <= lo < hi <= 1.0:
+            raise ValueError(f"model.augment.paste_source_rows={values}; expected [top, bottom] fractions with "
+                             "0 <= top < bottom <= 1")
         if int(self.paste_max) < 1:
             raise ValueError(f"model.augment.paste_max={self.paste_max}; expected at least 1 object a sample")
         for name in ("flip_prob", "jitter_prob", "gray_prob", "shadow_prob", "paste_prob"):
@@ -292,7 +300,10 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
             # its texture keeps a real image's detail at every depth (a near object is not a magnified blur)
             crop = [min(1.0, 2.0 * half * float(magnify[k]) / (W - 1)),
                     min(1.0, (bottom - top) * float(magnify[k]) / (H - 1))]
-            corner = [float(place[k, 0]) * (1.0 - crop[0]), float(place[k, 1]) * (1.0 - crop[1])]
+            top_row, bottom_row = (float(x) for x in cfg.paste_source_rows)
+            crop[1] = min(crop[1], bottom_row - top_row)
+            corner = [float(place[k, 0]) * (1.0 - crop[0]),
+                      top_row + float(place[k, 1]) * (bottom_row - top_row - crop[1])]
             for key, shift in (("image", 0.0), ("image_right", fx * float(Td[b, 0, 3]) / z)):
                 s = (u - shift - (float(centre[k]) - half)) / (2.0 * half)  # 0..1 across the object
                 inside = (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)

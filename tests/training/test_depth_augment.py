@@ -301,3 +301,22 @@ def test_pasting_is_drawn_only_when_on_and_refuses_what_it_cannot_do() -> None:
             DepthPoseModule(cfg)
     DepthPoseModule({"model": {"name": "depth_stereo", "temporal": False, "augment": {"paste_prob": 0.5}},
                      "data": {"kind": "kitti_raw", "seed": 0, "camera_height": 1.65}})
+
+
+def test_pasted_textures_come_from_the_rows_asked_for() -> None:
+    """With ``paste_source_rows=(0.5, 1)`` every pasted pixel's texture comes from the source images' lower half: on
+    images whose green channel is 0.1 + 0.8 v / H (gain 1) it reads at least 0.5 there, and less where the whole
+    height may be used."""
+    from dfvo.training.augment import paste_objects
+
+    batch = _ramp_pair(8)
+    v = torch.arange(H, dtype=torch.float32)
+    batch["image"][:, 1] = (0.1 + 0.8 * v / H).view(H, 1)
+    for rows, low in (((0.5, 1.0), True), ((0.0, 1.0), False)):
+        cfg = DepthAugmentConfig(paste_prob=1.0, paste_gain=(1.0, 1.0), paste_source_rows=rows)
+        out = paste_objects(batch, cfg, torch.Generator().manual_seed(4))
+        green = out["image"][:, 1][out["depth"][:, 0] > 0]
+        assert green.numel() > 100
+        assert (float(green.min()) >= 0.1 + 0.8 * (0.5 * (H - 1)) / H - 1e-5) == low
+    with pytest.raises(ValueError, match="model.augment.paste_source_rows"):
+        DepthAugmentConfig(paste_source_rows=(0.8, 0.2))
