@@ -287,6 +287,7 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
     views = {"image": image.clone(), "image_right": right.clone()}
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
     Kd, Td = K.double().cpu(), T.double().cpu()
+    top_row, bottom_row = (float(x) for x in cfg.paste_source_rows)
     for b in torch.nonzero(use).flatten().tolist():
         fx, fy, cy = float(Kd[b, 0, 0]), float(Kd[b, 1, 1]), float(Kd[b, 1, 2])
         objects = sorted(range(b * n, b * n + int(count[b])), key=lambda k: -float(Z[k]))  # far first
@@ -300,7 +301,6 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
             # its texture keeps a real image's detail at every depth (a near object is not a magnified blur)
             crop = [min(1.0, 2.0 * half * float(magnify[k]) / (W - 1)),
                     min(1.0, (bottom - top) * float(magnify[k]) / (H - 1))]
-            top_row, bottom_row = (float(x) for x in cfg.paste_source_rows)
             crop[1] = min(crop[1], bottom_row - top_row)
             corner = [float(place[k, 0]) * (1.0 - crop[0]),
                       top_row + float(place[k, 1]) * (bottom_row - top_row - crop[1])]
