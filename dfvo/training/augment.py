@@ -256,7 +256,9 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
     their pixels (created with 0 = no truth elsewhere when the batch has none). Needs ``K`` (B,3,3),
     ``T_right_left`` (B,4,4) of a rectified pair (no rotation) and ``camera_height`` (B,) metres (> 0 marks a real
     sample; a batch without it has no real sample and is returned as it is: the depth module checks that the data
-    gives the height). Returns a new dict; the input is not modified."""
+    gives the height). When anything is pasted, ``pasted`` (B,1,H,W) bool marks the left image's object pixels and
+    ``image_unpasted`` (B,3,H,W) keeps the left image as it was (the distillation teacher's view). Returns a new
+    dict; the input is not modified."""
     if "camera_height" not in batch:  # no real sample in this batch (a mixed batch of synthetic samples alone)
         return dict(batch)
     for key in ("image_right", "T_right_left", "K"):
@@ -282,6 +284,7 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
     KORNIA_CHECK(bool((rotation[use].abs() <= 1e-4).all()), "model.augment.paste_prob > 0 needs rectified stereo "
                  "pairs (T_right_left without rotation)")
     out = dict(batch)
+    pasted = torch.zeros(B, 1, H, W, dtype=torch.bool, device=image.device)
     depth = batch.get("depth")
     depth = torch.zeros(B, 1, H, W, dtype=image.dtype, device=image.device) if depth is None else depth.clone()
     views = {"image": image.clone(), "image_right": right.clone()}
@@ -318,8 +321,11 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
                 views[key][b] = torch.where(mask, texture, views[key][b])
                 if key == "image":
                     depth[b, 0] = torch.where(mask, torch.full_like(depth[b, 0], z), depth[b, 0])
+                    pasted[b, 0] |= mask
     out.update(views)
     out["depth"] = depth
+    out["pasted"] = pasted
+    out["image_unpasted"] = image
     return out
 
 
@@ -331,15 +337,16 @@ def augment_depth_batch(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig,
     Returns:
         ``(batch, net_inputs)``: the (possibly mirrored) batch the losses use, and the jittered images
         ``{key: (B,3,H,W)}`` for every image key present, which the depth and pose networks see; the depth
-        network's ``image_depth`` is ``image`` with its shadows (only when ``cfg.shadow_prob`` > 0).
+        network's ``image_depth`` is ``image`` with its shadows (only when ``cfg.shadow_prob`` > 0); when objects
+        were pasted, ``image_unpasted`` is ``image`` without them, jittered alike (the teacher's view).
     """
     B = batch["image"].shape[0]
     flip = torch.rand(B, generator=generator, dtype=torch.float64) < cfg.flip_prob
     batch = flip_batch(batch, flip)
     if cfg.paste_prob > 0:  # drawn only when on: runs without pasted objects keep their random stream
         batch = paste_objects(batch, cfg, generator)
-    images = {k: batch[k] for k in IMAGE_KEYS if k in batch}
-    net_inputs = jitter_images(images, cfg, generator)
+    images = {k: batch[k] for k in (*IMAGE_KEYS, "image_unpasted") if k in batch}
+    net_inputs = jitter_images(images, cfg, generator)  # one draw per sample, whatever the keys
     if cfg.shadow_prob > 0:  # drawn after the jitter: runs without shadows keep their random stream
         net_inputs["image_depth"] = cast_shadows(net_inputs["image"], cfg, generator)
     return batch, net_inputs

@@ -123,8 +123,9 @@ class DepthModelConfig:
         width_multiplier: the depth network's channel multiplier (``DepthNet(width=...)``; 1: the monodepth2 network,
             0.5: a cheaper one with about a quarter of its multiply-adds; at most 4); exports record it.
         teacher: a trained depth network's weights file (any width): distillation. It sees each sample's image before
-            ``augment.shadow_prob``'s shadows (so the student learns to ignore them), in inference mode, and is not
-            part of the checkpoints.
+            ``augment.shadow_prob``'s shadows (so the student learns to ignore them) and before
+            ``augment.paste_prob``'s objects (it teaches the scene around them; their own pixels, whose depth is
+            known, are left out), in inference mode, and is not part of the checkpoints.
         w_distill: weight of the distillation loss: at every scale, the log-depth L1 of the scale's depth against
             the teacher's (0: off; > 0 needs ``teacher``).
     """

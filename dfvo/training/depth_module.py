@@ -23,8 +23,9 @@ the scale's depth ``D_s`` reaches with any source view, plus ``model.w_camera_he
 (:func:`dfvo.losses.road_height.road_height_log_l1`): the road pixels of the tracker's road band, those on the plane
 fitted to the scale-0 depth (no gradient through the fit), held at the sample's known ``camera_height`` (KITTI samples;
 0: none), plus ``model.w_distill`` x the log-depth L1 of that scale's depth against a trained network's
-(``model.teacher``, run in inference mode on the sample's image before the shadows of ``augment.shadow_prob``):
-distillation, e.g. into a narrower network (``model.width_multiplier``).
+(``model.teacher``, run in inference mode on the sample's image before the shadows of ``augment.shadow_prob`` and the
+objects of ``augment.paste_prob``, and not counted on the objects' pixels, whose depth is known): distillation, e.g.
+into a narrower network (``model.width_multiplier``), or holding a network's scene while pasted objects teach it.
 """
 
 from __future__ import annotations
@@ -199,7 +200,12 @@ class DepthPoseModule(L.LightningModule):
         teacher_depth = None
         if self.w_distill > 0:
             with torch.no_grad():
-                teacher_depth = self.teacher().to(image.device).depth(net.get("image", image)).float()
+                # the scene as it was (without pasted objects) and without shadows; no teaching on pasted objects,
+                # whose depth is known (augment.paste_prob)
+                view = net.get("image_unpasted", net.get("image", image))
+                teacher_depth = self.teacher().to(image.device).depth(view).float()
+                if "pasted" in batch:
+                    teacher_depth = teacher_depth.masked_fill(batch["pasted"], 0.0)  # <= 0: no target
         if self.w_consistency > 0:
             keys = {"prev": "image_prev", "next": "image_next"}
             views = [depth_input] + [net.get(keys[s[0]], s[1]) for s in temporal]

@@ -218,6 +218,10 @@ def test_a_pasted_object_stands_on_the_road_at_its_depth_in_both_views() -> None
     again = paste_objects(batch, cfg, torch.Generator().manual_seed(3))
     assert all(torch.equal(out[k], again[k]) for k in ("image", "image_right", "depth"))
     assert torch.equal(out["image"][-1], batch["image"][-1]) and not bool((out["depth"][-1] > 0).any())
+    # the object pixels are marked (the batch had no depth: they are where depth is written) and the image as it was
+    # is kept for the distillation teacher; outside the objects the left image is untouched
+    assert torch.equal(out["pasted"], out["depth"] > 0) and torch.equal(out["image_unpasted"], batch["image"])
+    assert torch.equal(torch.where(out["pasted"], 0.0, out["image"]), torch.where(out["pasted"], 0.0, batch["image"]))
     fy, cy = float(batch["K"][0, 1, 1]), float(batch["K"][0, 1, 2])
     checked = scaled = 0
     for b in range(B - 1):

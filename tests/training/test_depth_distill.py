@@ -95,8 +95,8 @@ def _module(teacher: Path, width: float, augment: dict | None = None):
 
     cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "init_depth": 10.0,
                                       "width_multiplier": width, "teacher": str(teacher), "w_distill": 1.0,
-                                      "augment": augment},
-                            "data": {"seed": 0}})
+                                      "w_depth_supervised": 1.0, "augment": augment},
+                            "data": {"seed": 0, "camera_height": 1.65}})
     return DepthPoseModule(cfg).eval()
 
 
@@ -164,6 +164,36 @@ def test_the_teacher_sees_the_image_without_shadows(tmp_path: Path, sample: dict
     assert torch.equal(seen["student"][:1], net["image_depth"])
     assert torch.allclose(seen["teacher"], sample["image"], atol=1e-6)
     assert (net["image_depth"] < sample["image"] - 1e-3).any()
+
+
+def test_the_teacher_sees_the_scene_without_pasted_objects_and_skips_their_pixels(tmp_path: Path,
+                                                                                  sample: dict) -> None:
+    """With ``augment.paste_prob=1`` the student sees the objects and is supervised at their known depth; the teacher
+    sees the image as it was and teaches every other pixel: the distillation term is the log-depth L1 against the
+    teacher's depth of the unpasted image with the object pixels left out (hand-computed here), which differs from
+    the term over every pixel of the pasted image by more than the tolerance."""
+    torch.manual_seed(5)
+    teacher_net = DepthNet(init_depth=10.0)
+    with torch.no_grad():
+        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
+    path = _save(teacher_net.eval(), tmp_path / "teacher.safetensors")
+    module = _module(path, 0.5, {"flip_prob": 0.0, "jitter_prob": 0.0, "paste_prob": 1.0, "paste_max": 3,
+                                 "paste_depth": [3.0, 6.0]})
+    real = {**sample, "camera_height": torch.tensor([1.65])}  # a real sample: objects are pasted
+    batch, net = augment_depth_batch(real, module.augment, torch.Generator().manual_seed(0))
+    pasted = batch["pasted"]
+    assert 0.02 < float(pasted.float().mean()) < 0.9 and not torch.equal(batch["image"], sample["image"])
+    assert torch.allclose(net["image_unpasted"], sample["image"], atol=1e-6)  # no jitter drawn: the image as it was
+    with torch.no_grad():
+        _, terms, _ = module._losses(batch, net)
+        student = module(batch["image"])
+        behind = teacher_net.depth(sample["image"])
+        expected, count = log_depth_l1(student, behind.masked_fill(pasted, 0.0), 100.0)
+        everywhere, _ = log_depth_l1(student, teacher_net.depth(batch["image"]), 100.0)
+    assert int(count) == pasted.numel() - int(pasted.sum())
+    torch.testing.assert_close(terms["distill_s0"], expected, rtol=1e-4, atol=1e-6)
+    assert abs(float(everywhere) - float(expected)) > 1e-2 * float(expected)
+    assert "depth_supervised_s0" in terms  # the objects' own depth teaches their pixels
 
 
 def test_distillation_settings_are_checked() -> None:
