@@ -256,9 +256,10 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
     their pixels (created with 0 = no truth elsewhere when the batch has none). Needs ``K`` (B,3,3),
     ``T_right_left`` (B,4,4) of a rectified pair (no rotation) and ``camera_height`` (B,) metres (> 0 marks a real
     sample; a batch without it has no real sample and is returned as it is: the depth module checks that the data
-    gives the height). When anything is pasted, ``pasted`` (B,1,H,W) bool marks the left image's object pixels and
-    ``image_unpasted`` (B,3,H,W) keeps the left image as it was (the distillation teacher's view). Returns a new
-    dict; the input is not modified."""
+    gives the height). When anything is pasted, ``pasted`` (B,1,H,W) bool marks the left image's object pixels,
+    ``image_unpasted`` (B,3,H,W) keeps the left image as it was (the distillation teacher's view) and a
+    ``depth_hint`` (B,1,H,W) loses its hints on the objects (0: none). Returns a new dict; the input is not
+    modified."""
     if "camera_height" not in batch:  # no real sample in this batch (a mixed batch of synthetic samples alone)
         return dict(batch)
     for key in ("image_right", "T_right_left", "K"):
@@ -324,6 +325,8 @@ def paste_objects(batch: dict[str, torch.Tensor], cfg: DepthAugmentConfig, gener
                     pasted[b, 0] |= mask
     out.update(views)
     out["depth"] = depth
+    if "depth_hint" in batch:  # the stereo matcher measured the scene the objects now hide: no hint there
+        out["depth_hint"] = batch["depth_hint"].masked_fill(pasted, 0.0)
     out["pasted"] = pasted
     out["image_unpasted"] = image
     return out

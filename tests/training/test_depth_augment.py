@@ -221,6 +221,9 @@ def test_a_pasted_object_stands_on_the_road_at_its_depth_in_both_views() -> None
     # the object pixels are marked (the batch had no depth: they are where depth is written) and the image as it was
     # is kept for the distillation teacher; outside the objects the left image is untouched
     assert torch.equal(out["pasted"], out["depth"] > 0) and torch.equal(out["image_unpasted"], batch["image"])
+    hints = torch.full((B, 1, H, W), 30.0)
+    hinted = paste_objects({**batch, "depth_hint": hints}, cfg, torch.Generator().manual_seed(3))
+    assert torch.equal(hinted["depth_hint"], torch.where(out["pasted"], 0.0, 30.0))  # the hidden scene's hints go
     assert torch.equal(torch.where(out["pasted"], 0.0, out["image"]), torch.where(out["pasted"], 0.0, batch["image"]))
     fy, cy = float(batch["K"][0, 1, 1]), float(batch["K"][0, 1, 2])
     checked = scaled = 0
