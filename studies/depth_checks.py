@@ -74,8 +74,8 @@ def road_heights(weights: str) -> dict:
                             ("kitti_raw", SHARED / "kitti_raw", "2011_09_26_drive_0001"),
                             ("kitti_raw", SHARED / "kitti_raw_test", "2011_09_26_drive_0005")):
         band = network_heights(kind, str(root), seq, depth_checkpoint=weights)["bands"]["default"]
-        out[f"{kind} {seq}"] = None if band is None else {"median_m": band["median_m"], "vs_1.65": band["vs_1.65"],
-                                                          "spread": band["spread"]}
+        out[f"{kind} {seq}"] = None if band is None else {k: band[k] for k in ("median_m", "vs_1.65", "spread",
+                                                                               "in_use_worst_m", "in_use_off_5pct")}
     return out
 
 

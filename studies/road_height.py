@@ -36,7 +36,7 @@ from dfvo.inference.config import typed
 from dfvo.inference.frames import build_sequence
 from dfvo.sources import build_depth_source
 from dfvo.tracking.camera_height import CameraHeight
-from dfvo.tracking.config import TrackerConfig
+from dfvo.tracking.config import CameraHeightConfig, TrackerConfig
 from dfvo.tracking.scale_fusion import depth_road_height
 
 REPO = Path(__file__).resolve().parents[1]
@@ -67,18 +67,39 @@ def network_heights(kind: str, root: str, seq: str, batch: int = 8, depth_checkp
     base = TrackerConfig()
     # the tracker's own estimator per band: the median of the per-frame heights and its robust spread
     heights = {name: CameraHeight(None, base.camera_height) for name in BANDS}
+    per_frame: dict[str, list[float | None]] = {name: [] for name in BANDS}
     for start in range(0, frames.length, batch):
         idx = list(range(start, min(frames.length, start + batch)))
         depth = depth_src(torch.stack([frames.image(i) for i in idx]), idx)
         for b in range(len(idx)):
             for name, fields in BANDS.items():
                 tcfg = dataclasses.replace(base, road_plane=dataclasses.replace(base.road_plane, **fields))
-                heights[name].observe(depth_road_height(depth[b:b + 1], K, tcfg, torch.Generator().manual_seed(0))
-                                      .height_unit)
+                height = depth_road_height(depth[b:b + 1], K, tcfg, torch.Generator().manual_seed(0)).height_unit
+                heights[name].observe(height)
+                per_frame[name].append(height)
     return {"frames": frames.length, "bands": {
         name: {"median_m": round(h.estimate, 4), "vs_1.65": round(h.estimate / KITTI_CAMERA_HEIGHT - 1, 4),
-               "spread": None if h.spread is None else round(h.spread, 4), "frames_with_plane": len(h.heights)}
+               "spread": None if h.spread is None else round(h.spread, 4), "frames_with_plane": len(h.heights),
+               **heights_in_use(per_frame[name], base.camera_height)}
         if h.estimate is not None else None for name, h in heights.items()}}
+
+
+def heights_in_use(per_frame: list[float | None], cfg: CameraHeightConfig,
+                   truth: float = KITTI_CAMERA_HEIGHT) -> dict:
+    """The camera height a video's tracker uses frame by frame (its causal estimator, :class:`CameraHeight`, fed the
+    network's per-frame road heights in order, None where no plane): the value farthest from ``truth``
+    (``in_use_worst_m``) and the fraction of frames whose value in use is off by more than 5 %, or unavailable
+    (``in_use_off_5pct``): a network whose road reads far on a sequence's first frames gets a median near ``truth``
+    over the whole sequence but lends the tracker a wrong height while it starts."""
+    estimator, used = CameraHeight(None, cfg), []
+    for height in per_frame:
+        estimator.observe(height)
+        used.append(estimator.value)
+    known = [u for u in used if u is not None]
+    worst = max(known, key=lambda u: abs(u / truth - 1.0)) if known else None
+    off = sum(1 for u in used if u is None or abs(u / truth - 1.0) > 0.05)
+    return {"in_use_worst_m": None if worst is None else round(worst, 4),
+            "in_use_off_5pct": round(off / max(len(used), 1), 4)}
 
 
 def photometric_height(run: Path, poses_file: Path) -> dict:

@@ -151,3 +151,18 @@ def test_length_panel_takes_the_hand_held_worlds_by_seed_and_tabulates_them(tmp_
                         "| 4 |")
     assert lines[3] == "| b | error | — | 0 |"
     assert handheld_table(result, ["kitti07"]) == ""
+
+
+def test_the_camera_height_in_use_replays_the_trackers_causal_estimator() -> None:
+    """``studies.road_height.heights_in_use``: a road read at 2.4 m on the first frames, then at 1.65 m. By hand with
+    the default estimator (3 frames with a plane, spread <= 15 %): no height on frames 1-3 (too few planes), 2.4 m
+    on frames 4-6 (the median of 2.4, 2.4, 2.4 and then one, two 1.65 m), none on frame 7 (median 2.025 m, spread
+    1.4826 x 0.375 / 2.025 = 27 %), 1.65 m from frame 8: worst 2.4 m, 7 of 10 frames off by more than 5 %. The
+    whole sequence's median would say 1.65 m."""
+    from dfvo.tracking.config import CameraHeightConfig
+    from studies.road_height import heights_in_use
+
+    heights = [2.4, 2.4, None, 2.4] + [1.65] * 6
+    assert heights_in_use(heights, CameraHeightConfig()) == {"in_use_worst_m": 2.4, "in_use_off_5pct": 0.7}
+    assert heights_in_use([1.65] * 5, CameraHeightConfig()) == {"in_use_worst_m": 1.65, "in_use_off_5pct": 0.4}
+    assert heights_in_use([None] * 4, CameraHeightConfig()) == {"in_use_worst_m": None, "in_use_off_5pct": 1.0}
