@@ -187,6 +187,9 @@ def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path:
     paste = model_config(_compose("experiment=depth_paste", f"runs_dir={tmp_path}"))
     assert paste.init_from == str(tmp_path / "depth_scene_shadow" / "weights.safetensors")
     assert paste.augment.paste_prob == 0.5 and not paste.temporal and paste.w_depth_supervised > 0
+    taught = model_config(_compose("experiment=depth_paste_teacher", f"runs_dir={tmp_path}"))
+    assert taught.teacher == taught.init_from == paste.init_from and taught.w_distill == 1.0
+    assert taught.augment == paste.augment and not taught.temporal  # depth_paste's objects, with the teacher
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
     assert small.width_multiplier == 0.5 and small.w_distill > 0
