@@ -148,8 +148,9 @@ class KittiOdomTrainDataConfig(TrainDataConfig):
 @dataclass
 class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     """``data=kitti_raw_synthetic``: KITTI raw drives and synthetic worlds in one training set (``frame_skips``
-    applies to both; ``frame_cache_dir`` and ``camera_height`` as ``data=kitti_raw``, the height for the KITTI samples
-    alone: the worlds' samples have their exact depth)."""
+    applies to both; ``frame_cache_dir``, ``camera_height`` and ``depth_hints`` as ``data=kitti_raw``, the height and
+    the hints for the KITTI samples alone: the worlds' samples have their exact depth, and no hint, 0, in a mixed
+    batch)."""
 
     ROOT_ENV: ClassVar[str | None] = "DFVO_KITTI_RAW_ROOT"
 
@@ -159,6 +160,7 @@ class KittiRawSyntheticTrainDataConfig(WorldsTrainDataConfig):
     frame_cache_dir: str | None = None
     held_out_drives: list[str] = field(default_factory=lambda: list(HELD_OUT_DRIVES))
     camera_height: float | None = KITTI_CAMERA_HEIGHT
+    depth_hints: bool = False
 
 
 def _training_seeds() -> list[int]:

@@ -54,9 +54,9 @@ log = logging.getLogger("dfvo.training")
 
 
 # keys a sample may lack, filled with the value that means "none here" for the others of its batch: true depth
-# (synthetic worlds) is <= 0 where there is none (dfvo.losses.depth_supervision), and so is a camera height (KITTI
-# samples; dfvo.losses.road_height)
-FILL_MISSING = {"depth": 0.0, "camera_height": 0.0}
+# (synthetic worlds) is <= 0 where there is none (dfvo.losses.depth_supervision), and so are a camera height (KITTI
+# samples; dfvo.losses.road_height) and a stereo matcher's depth hint (KITTI samples with data.depth_hints)
+FILL_MISSING = {"depth": 0.0, "camera_height": 0.0, "depth_hint": 0.0}
 
 
 def collate_common_keys(samples: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
@@ -151,7 +151,7 @@ class DFVODataModule(L.LightningDataModule):
         root = data_root(data)
         drives = list(data.drives) if data.drives else None
         stereo, skips, cache = self._need_stereo(), self.frame_skips, data.frame_cache_dir
-        hints = getattr(data, "depth_hints", False)  # data=kitti_raw only
+        hints = data.depth_hints
         try:
             if skips == [1]:
                 return self._with_height(KittiRawSnippets(root, data.height, data.width, drives=drives, stereo=stereo,

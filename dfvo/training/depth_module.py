@@ -93,6 +93,12 @@ class DepthPoseModule(L.LightningModule):
         self.pose_net = PoseNet() if self.temporal else None
         self.augment = m.augment
         self.augment_seed = int(cfg.data.seed) if "data" in cfg else 0
+        # a batch of synthetic samples alone has no hints (a mixed batch has 0, none, on its worlds' samples)
+        self.hints_on_real_samples_only = "data" in cfg and cfg.data.get("kind") == "kitti_raw_synthetic"
+        if self.w_depth_hints > 0 and "data" in cfg and cfg.data.get("kind") in ("kitti_raw", "kitti_raw_synthetic") \
+                and not cfg.data.get("depth_hints", False):
+            raise ValueError(f"model.w_depth_hints={self.w_depth_hints} needs the stereo matcher's hints: set "
+                             f"data.depth_hints=true (data={cfg.data.get('kind')})")
         if self.augment is not None and self.augment.paste_prob > 0 and "data" in cfg:
             height = cfg.data.get("camera_height")
             if not self.stereo or height is None:
@@ -234,7 +240,9 @@ class DepthPoseModule(L.LightningModule):
         identity = []
         if self.automask:
             identity = list((ssim_l1_error(image_all, srcs, self.alpha, target_moments) + 1e-5).split(B))
-        hint = self._hint_reprojection(batch, sources) if self.w_depth_hints > 0 else None
+        hint = None
+        if self.w_depth_hints > 0 and ("depth_hint" in batch or not self.hints_on_real_samples_only):
+            hint = self._hint_reprojection(batch, sources)
         road = None
         if self.w_camera_height > 0 and "camera_height" in batch:
             depth0 = disp_to_depth(F.interpolate(disps[0], size=(H, W), mode="bilinear", align_corners=False),
@@ -331,8 +339,8 @@ class DepthPoseModule(L.LightningModule):
         """The batch's depth hints (B,1,H,W) and the photometric error (B,1,H,W) of the stereo partner reprojected
         with them (+inf where there is no hint, it is beyond ``max_depth`` or it leaves the image)."""
         if "depth_hint" not in batch:
-            raise KeyError("model.w_depth_hints > 0: the batch has no 'depth_hint'; use data=kitti_raw with "
-                           "data.depth_hints=true")
+            raise KeyError("model.w_depth_hints > 0: the batch has no 'depth_hint'; use data=kitti_raw (or "
+                           "kitti_raw_synthetic) with data.depth_hints=true")
         name, src, T = next(x for x in sources if x[0] == "stereo")
         hint = batch["depth_hint"].float()
         rep = reproject(src, hint.clamp_min(self.min_depth), T, batch["K"].float())

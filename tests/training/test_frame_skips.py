@@ -135,3 +135,7 @@ def test_mixed_batch_keeps_the_synthetic_true_depth() -> None:
     loss, count = log_depth_l1(pred, batch["depth"], 100.0)
     assert float(count) == 24 and float(loss) == pytest.approx(1.0)
     assert set(collate_common_keys([real, real])) == {"image", "T_right_left"}
+    # the stereo matcher's hints of the KITTI samples (data.depth_hints): 0, no hint, for the synthetic ones
+    hinted = collate_common_keys([{**real, "depth_hint": torch.full((1, 4, 6), 7.0)}, synthetic])
+    assert torch.equal(hinted["depth_hint"][0], torch.full((1, 4, 6), 7.0))
+    assert torch.equal(hinted["depth_hint"][1], torch.zeros(1, 4, 6))

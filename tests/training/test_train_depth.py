@@ -322,6 +322,20 @@ def test_depth_hints_reprojection_and_loss() -> None:
     loss, terms, _ = module._losses({**batch, "depth_hint": batch["depth"]})
     assert torch.isfinite(loss) and {"depth_hints_s0", "depth_hints_used_s3"} <= set(terms)
     assert 0 < float(terms["depth_hints_used_s0"]) <= 1
+    # data=kitti_raw_synthetic: a batch of worlds alone has no hints and no hint term (their exact depth teaches
+    # them); a mixed batch's worlds have hint 0, which is never used; data without hints is refused at once
+    mixed_cfg = OmegaConf.merge(cfg, {"data": {"kind": "kitti_raw_synthetic", "depth_hints": True}})
+    mixed = DepthPoseModule(mixed_cfg)
+    mixed.load_state_dict(module.state_dict())
+    loss_worlds, terms_worlds, _ = mixed._losses(batch)
+    assert "depth_hints_s0" not in terms_worlds
+    plain = DepthPoseModule(OmegaConf.merge(cfg, {"model": {"w_depth_hints": 0.0}}))
+    plain.load_state_dict(module.state_dict())
+    torch.testing.assert_close(loss_worlds, plain._losses(batch)[0])  # the loss without hints, to the bit
+    _, terms_none, _ = mixed._losses({**batch, "depth_hint": torch.zeros_like(batch["depth"])})
+    assert float(terms_none["depth_hints_used_s0"]) == 0.0 and float(terms_none["depth_hints_s0"]) == 0.0
+    with pytest.raises(ValueError, match="data.depth_hints=true"):
+        DepthPoseModule(OmegaConf.merge(cfg, {"data": {"kind": "kitti_raw_synthetic", "depth_hints": False}}))
 
 
 @pytest.mark.parametrize("freeze", [True, False])
