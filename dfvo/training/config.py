@@ -128,6 +128,9 @@ class DepthModelConfig:
             known, are left out), in inference mode, and is not part of the checkpoints.
         w_distill: weight of the distillation loss: at every scale, the log-depth L1 of the scale's depth against
             the teacher's (0: off; > 0 needs ``teacher``).
+        distill_where_no_target: the teacher only at the pixels that have no other depth target: not where the
+            batch's ``depth`` (the worlds' exact depth, pasted objects) or ``depth_hint`` (the stereo matcher's,
+            ``data.depth_hints``) is > 0 (false: every pixel but the pasted objects').
     """
 
     _target_: str = "dfvo.training.depth_module.DepthPoseModule"
@@ -157,6 +160,7 @@ class DepthModelConfig:
     width_multiplier: float = 1.0
     teacher: str | None = None
     w_distill: float = 0.0
+    distill_where_no_target: bool = False
 
     def __post_init__(self) -> None:
         if self.task != "depth":

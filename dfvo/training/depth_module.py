@@ -212,6 +212,10 @@ class DepthPoseModule(L.LightningModule):
                 teacher_depth = self.teacher().to(image.device).depth(view).float()
                 if "pasted" in batch:
                     teacher_depth = teacher_depth.masked_fill(batch["pasted"], 0.0)  # <= 0: no target
+                if self.model_cfg.distill_where_no_target:  # the worlds' truth and the stereo hints teach there
+                    for key in ("depth", "depth_hint"):
+                        if key in batch:
+                            teacher_depth = teacher_depth.masked_fill(batch[key] > 0, 0.0)
         if self.w_consistency > 0:
             keys = {"prev": "image_prev", "next": "image_next"}
             views = [depth_input] + [net.get(keys[s[0]], s[1]) for s in temporal]

@@ -196,6 +196,36 @@ def test_the_teacher_sees_the_scene_without_pasted_objects_and_skips_their_pixel
     assert "depth_supervised_s0" in terms  # the objects' own depth teaches their pixels
 
 
+def test_the_teacher_can_be_left_to_the_pixels_without_another_target(tmp_path: Path, sample: dict) -> None:
+    """``model.distill_where_no_target``: the distillation term averages the teacher's log-depth L1 over the pixels
+    without true depth or a stereo hint only (hand-computed), not over every pixel."""
+    torch.manual_seed(7)
+    teacher_net = DepthNet(init_depth=10.0)
+    with torch.no_grad():
+        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
+    path = _save(teacher_net.eval(), tmp_path / "teacher.safetensors")
+    module = _module(path, 0.5)
+    targeted = _module(path, 0.5)
+    targeted.model_cfg.distill_where_no_target = True
+    targeted.load_state_dict(module.state_dict())
+    truth = torch.zeros(1, 1, H, W)
+    truth[..., : H // 3, :] = 20.0  # the top third has true depth, the left half of the rest a hint
+    hint = torch.zeros(1, 1, H, W)
+    hint[..., H // 3:, : W // 2] = 8.0
+    batch = {**sample, "depth": truth, "depth_hint": hint}
+    with torch.no_grad():
+        _, every, _ = module._losses(batch, None)
+        _, left, _ = targeted._losses(batch, None)
+        student, teacher = module(sample["image"]), teacher_net.depth(sample["image"])
+        free = (truth <= 0) & (hint <= 0)
+        expected, count = log_depth_l1(student, teacher.masked_fill(~free, 0.0), 100.0)
+        everywhere, _ = log_depth_l1(student, teacher, 100.0)
+    assert int(count) == int(free.sum()) == (H - H // 3) * (W - W // 2)
+    torch.testing.assert_close(left["distill_s0"], expected, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(every["distill_s0"], everywhere, rtol=1e-4, atol=1e-6)
+    assert abs(float(expected) - float(everywhere)) > 1e-2 * float(everywhere)
+
+
 def test_distillation_settings_are_checked() -> None:
     """w_distill without a teacher, a teacher without a weight, a channel multiplier that is an image width: one line
     naming the key."""
