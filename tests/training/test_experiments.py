@@ -190,6 +190,11 @@ def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path:
     taught = model_config(_compose("experiment=depth_paste_teacher", f"runs_dir={tmp_path}"))
     assert taught.teacher == taught.init_from == paste.init_from and taught.w_distill == 1.0
     assert taught.augment == paste.augment and not taught.temporal  # depth_paste's objects, with the teacher
+    hinted = model_config(_compose("experiment=depth_paste_hints", f"runs_dir={tmp_path}"))
+    filled = model_config(_compose("experiment=depth_paste_hints_fill", f"runs_dir={tmp_path}"))
+    assert hinted.w_depth_hints > 0 and not hinted.distill_where_no_target
+    assert filled.distill_where_no_target and filled.teacher == taught.teacher and filled.w_distill == 1.0
+    assert filled.augment == hinted.augment == paste.augment and filled.w_depth_hints == hinted.w_depth_hints
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
     assert small.width_multiplier == 0.5 and small.w_distill > 0
