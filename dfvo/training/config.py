@@ -101,6 +101,9 @@ class DepthModelConfig:
         w_depth_hints: weight of the depth-hint loss (Watson et al. 2019): at every scale, ``log(1 + |D - H|)``
             where the batch's stereo-matcher depth ``H`` (``data.depth_hints=true``) reprojects the stereo partner
             with a lower photometric error than the network's depth ``D`` does any source view (0: off).
+        depth_hints_from_row: the hints teach only the image rows at or below this fraction of the height (0: every
+            row; 0.667: the lower third, mostly road); above it they are dropped before any loss (with
+            ``distill_where_no_target`` the teacher takes those pixels).
         w_camera_height: weight of the camera-height loss (:mod:`dfvo.losses.road_height`): at every scale, the
             log-depth L1 of the road pixels against the plane at the sample's known ``camera_height`` (the data's
             ``data.camera_height``: real KITTI samples), the plane's tilt and pixels from the network's own depth
@@ -143,6 +146,7 @@ class DepthModelConfig:
     w_consistency: float = 0.0
     w_depth_supervised: float = 0.0
     w_depth_hints: float = 0.0
+    depth_hints_from_row: float = 0.0
     w_camera_height: float = 0.0
     freeze_bn: bool = False
     automask: bool = True
@@ -173,6 +177,9 @@ class DepthModelConfig:
                 raise ValueError(f"model.{key}={getattr(self, key)}; expected >= 0")
         if self.w_depth_hints > 0 and not self.stereo:
             raise ValueError("model.w_depth_hints > 0 needs model.stereo = true (hints reproject the stereo partner)")
+        if not 0.0 <= self.depth_hints_from_row < 1.0:
+            raise ValueError(f"model.depth_hints_from_row={self.depth_hints_from_row}; expected a fraction of the "
+                             "image height in [0, 1) (0: hints on every row)")
         if self.w_consistency > 0 and not self.temporal:
             raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
         check_distillation(self.teacher, self.w_distill, "depth")

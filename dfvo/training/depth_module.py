@@ -199,6 +199,7 @@ class DepthPoseModule(L.LightningModule):
         image = batch["image"]
         B = image.shape[0]
         net = net_inputs or {}
+        batch = self._hints_from_row(batch)
         sources = self._sources(batch, net)
         temporal = [s for s in sources if s[0] != "stereo"]
         # the depth network's input: with shadows cast (augment.shadow_prob) when drawn, else the jittered image
@@ -226,6 +227,16 @@ class DepthPoseModule(L.LightningModule):
         with float32_losses(image.device):  # the networks may run under bf16 autocast; the losses never do
             return self._losses_from(batch, sources, disps, disps_all if self.w_consistency > 0 else None,
                                      teacher_depth)
+
+    def _hints_from_row(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The batch with its ``depth_hint`` (B,1,H,W) zeroed (no hint) above ``model.depth_hints_from_row`` of the
+        height; the batch itself when there are no hints or the setting is 0."""
+        start = round(self.model_cfg.depth_hints_from_row * batch["image"].shape[-2])
+        if "depth_hint" not in batch or start == 0:
+            return batch
+        hint = batch["depth_hint"].clone()
+        hint[..., :start, :] = 0.0
+        return {**batch, "depth_hint": hint}
 
     def _losses_from(self, batch: dict[str, torch.Tensor], sources: list[tuple[str, torch.Tensor, torch.Tensor]],
                      disps: dict[int, torch.Tensor], disps_all: dict[int, torch.Tensor] | None,

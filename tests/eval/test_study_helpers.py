@@ -166,3 +166,19 @@ def test_the_camera_height_in_use_replays_the_trackers_causal_estimator() -> Non
     assert heights_in_use(heights, CameraHeightConfig()) == {"in_use_worst_m": 2.4, "in_use_off_5pct": 0.7}
     assert heights_in_use([1.65] * 5, CameraHeightConfig()) == {"in_use_worst_m": 1.65, "in_use_off_5pct": 0.4}
     assert heights_in_use([None] * 4, CameraHeightConfig()) == {"in_use_worst_m": None, "in_use_off_5pct": 1.0}
+
+
+def test_depth_against_stereo_splits_the_road_from_the_rows_above():
+    """studies/depth_vs_stereo.region_ratios: a prediction 1.5x too far above the lower third and right on it reads
+    1.5 and 1.0; pixels above the crop's top, without stereo depth or beyond 80 m are not scored."""
+    from studies.depth_vs_stereo import region_ratios
+    h, w = 30, 8
+    stereo = np.full((h, w), 10.0)
+    stereo[:, 0] = 0.0  # no match
+    stereo[:, 1] = 95.0  # beyond 80 m
+    pred = stereo.copy()
+    pred[:20] *= 1.5  # rows 0..19 (above 2/3 of 30)
+    pred[:12] = 1000.0  # above the crop's top (0.4 x 30 = 12): not scored
+    r = region_ratios(pred, stereo)
+    assert r["lower third"] == 1.0 and abs(r["upper rows"] - 1.5) < 1e-12
+    assert r["pixels"] == (h - 12) * (w - 2)

@@ -226,6 +226,45 @@ def test_the_teacher_can_be_left_to_the_pixels_without_another_target(tmp_path: 
     assert abs(float(expected) - float(everywhere)) > 1e-2 * float(everywhere)
 
 
+def test_hints_can_be_kept_to_the_lower_rows_with_the_teacher_above(tmp_path: Path, sample: dict) -> None:
+    """``model.depth_hints_from_row``: the hints above that fraction of the height are dropped before any loss, so
+    every term (the hint term, and with ``distill_where_no_target`` the teacher's, which takes those pixels) equals
+    the same module's on a batch whose hint was zeroed there by hand, and differs from the terms with every hint."""
+    from dfvo.training.depth_module import DepthPoseModule
+
+    torch.manual_seed(5)
+    teacher_net = DepthNet(init_depth=10.0)
+    with torch.no_grad():
+        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
+    path = _save(teacher_net.eval(), tmp_path / "teacher.safetensors")
+
+    def module(from_row: float) -> DepthPoseModule:
+        cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "init_depth": 10.0,
+                                          "teacher": str(path), "w_distill": 1.0, "w_depth_hints": 1.0,
+                                          "distill_where_no_target": True, "depth_hints_from_row": from_row,
+                                          "augment": None},
+                                "data": {"seed": 0, "camera_height": 1.65}})
+        return DepthPoseModule(cfg).eval()
+
+    rows, every_row = module(2 / 3), module(0.0)
+    rows.load_state_dict(every_row.state_dict())
+    hint = torch.full((1, 1, H, W), 8.0)
+    hint[..., :, : W // 4] = 0.0  # no match on the left quarter
+    by_hand = hint.clone()
+    by_hand[..., : round(2 / 3 * H), :] = 0.0
+    with torch.no_grad():
+        loss_kept, kept, _ = rows._losses({**sample, "depth_hint": hint}, None)
+        loss_zeroed, zeroed, _ = every_row._losses({**sample, "depth_hint": by_hand}, None)
+        _, everywhere, _ = every_row._losses({**sample, "depth_hint": hint}, None)
+    torch.testing.assert_close(loss_kept, loss_zeroed, rtol=1e-5, atol=1e-7)
+    for key in ("depth_hints_s0", "distill_s0"):
+        torch.testing.assert_close(kept[key], zeroed[key], rtol=1e-5, atol=1e-7)
+    assert float(kept["depth_hints_used_s0"]) < float(everywhere["depth_hints_used_s0"])
+    assert abs(float(kept["distill_s0"]) - float(everywhere["distill_s0"])) > 1e-3 * float(everywhere["distill_s0"])
+    with pytest.raises(ValueError, match="model.depth_hints_from_row=1.0"):
+        module(1.0)
+
+
 def test_distillation_settings_are_checked() -> None:
     """w_distill without a teacher, a teacher without a weight, a channel multiplier that is an image width: one line
     naming the key."""
