@@ -195,6 +195,8 @@ def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path:
     assert hinted.w_depth_hints > 0 and not hinted.distill_where_no_target
     assert filled.distill_where_no_target and filled.teacher == taught.teacher and filled.w_distill == 1.0
     assert filled.augment == hinted.augment == paste.augment and filled.w_depth_hints == hinted.w_depth_hints
+    rows = model_config(_compose("experiment=depth_paste_hints_rows", f"runs_dir={tmp_path}"))
+    assert rows.depth_hints_from_row == 0.667 and rows.distill_where_no_target and rows.teacher == filled.teacher
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
     assert small.width_multiplier == 0.5 and small.w_distill > 0
