@@ -90,14 +90,26 @@ def sample() -> dict:
             "T_right_left": f["T_right_left"][None].float()}
 
 
-def _module(teacher: Path, width: float, augment: dict | None = None):
+def _module(teacher: Path, width: float, augment: dict | None = None, **model):
+    """A depth module distilled from ``teacher``; ``model``: further ``model.`` settings."""
     from dfvo.training.depth_module import DepthPoseModule
 
     cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "init_depth": 10.0,
                                       "width_multiplier": width, "teacher": str(teacher), "w_distill": 1.0,
-                                      "w_depth_supervised": 1.0, "augment": augment},
+                                      "w_depth_supervised": 1.0, "augment": augment, **model},
                             "data": {"seed": 0, "camera_height": 1.65}})
     return DepthPoseModule(cfg).eval()
+
+
+def _teacher(tmp_path: Path, seed: int) -> tuple[DepthNet, Path]:
+    """A teacher whose depth varies over the image (the untrained network's is nearly flat), in inference mode, and
+    its weights file."""
+    torch.manual_seed(seed)
+    teacher_net = DepthNet(init_depth=10.0)
+    with torch.no_grad():
+        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
+    teacher_net.eval()
+    return teacher_net, _save(teacher_net, tmp_path / "teacher.safetensors")
 
 
 def _save(net: DepthNet, path: Path) -> Path:
@@ -110,12 +122,7 @@ def test_distillation_term_is_the_students_distance_to_the_teacher(tmp_path: Pat
     """The distillation term at scale 0 is the log-depth L1 between the student's depth and the teacher's: ~0 for a
     student that is the teacher (same width, same weights), the hand-computed value for a half-width student. The
     teacher is in neither the checkpoint's state dict nor the optimiser."""
-    torch.manual_seed(3)
-    teacher_net = DepthNet(init_depth=10.0)
-    with torch.no_grad():  # a teacher whose depth varies over the image (the untrained one is nearly flat)
-        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
-    teacher_net.eval()
-    path = _save(teacher_net, tmp_path / "teacher.safetensors")
+    teacher_net, path = _teacher(tmp_path, 3)
 
     same = _module(path, 1.0)
     same.depth_net.load_state_dict(teacher_net.state_dict())
@@ -172,11 +179,7 @@ def test_the_teacher_sees_the_scene_without_pasted_objects_and_skips_their_pixel
     sees the image as it was and teaches every other pixel: the distillation term is the log-depth L1 against the
     teacher's depth of the unpasted image with the object pixels left out (hand-computed here), which differs from
     the term over every pixel of the pasted image by more than the tolerance."""
-    torch.manual_seed(5)
-    teacher_net = DepthNet(init_depth=10.0)
-    with torch.no_grad():
-        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
-    path = _save(teacher_net.eval(), tmp_path / "teacher.safetensors")
+    teacher_net, path = _teacher(tmp_path, 5)
     module = _module(path, 0.5, {"flip_prob": 0.0, "jitter_prob": 0.0, "paste_prob": 1.0, "paste_max": 3,
                                  "paste_depth": [3.0, 6.0]})
     real = {**sample, "camera_height": torch.tensor([1.65])}  # a real sample: objects are pasted
@@ -199,14 +202,9 @@ def test_the_teacher_sees_the_scene_without_pasted_objects_and_skips_their_pixel
 def test_the_teacher_can_be_left_to_the_pixels_without_another_target(tmp_path: Path, sample: dict) -> None:
     """``model.distill_where_no_target``: the distillation term averages the teacher's log-depth L1 over the pixels
     without true depth or a stereo hint only (hand-computed), not over every pixel."""
-    torch.manual_seed(7)
-    teacher_net = DepthNet(init_depth=10.0)
-    with torch.no_grad():
-        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
-    path = _save(teacher_net.eval(), tmp_path / "teacher.safetensors")
+    teacher_net, path = _teacher(tmp_path, 7)
     module = _module(path, 0.5)
-    targeted = _module(path, 0.5)
-    targeted.model_cfg.distill_where_no_target = True
+    targeted = _module(path, 0.5, distill_where_no_target=True)
     targeted.load_state_dict(module.state_dict())
     truth = torch.zeros(1, 1, H, W)
     truth[..., : H // 3, :] = 20.0  # the top third has true depth, the left half of the rest a hint
@@ -230,21 +228,10 @@ def test_hints_can_be_kept_to_the_lower_rows_with_the_teacher_above(tmp_path: Pa
     """``model.depth_hints_from_row``: the hints above that fraction of the height are dropped before any loss, so
     every term (the hint term, and with ``distill_where_no_target`` the teacher's, which takes those pixels) equals
     the same module's on a batch whose hint was zeroed there by hand, and differs from the terms with every hint."""
-    from dfvo.training.depth_module import DepthPoseModule
+    _, path = _teacher(tmp_path, 5)
 
-    torch.manual_seed(5)
-    teacher_net = DepthNet(init_depth=10.0)
-    with torch.no_grad():
-        teacher_net.decoder.heads[0].conv.weight.normal_(0.0, 0.5)
-    path = _save(teacher_net.eval(), tmp_path / "teacher.safetensors")
-
-    def module(from_row: float) -> DepthPoseModule:
-        cfg = OmegaConf.create({"model": {"task": "depth", "name": "depth_stereo", "init_depth": 10.0,
-                                          "teacher": str(path), "w_distill": 1.0, "w_depth_hints": 1.0,
-                                          "distill_where_no_target": True, "depth_hints_from_row": from_row,
-                                          "augment": None},
-                                "data": {"seed": 0, "camera_height": 1.65}})
-        return DepthPoseModule(cfg).eval()
+    def module(from_row: float):
+        return _module(path, 1.0, w_depth_hints=1.0, distill_where_no_target=True, depth_hints_from_row=from_row)
 
     rows, every_row = module(2 / 3), module(0.0)
     rows.load_state_dict(every_row.state_dict())
