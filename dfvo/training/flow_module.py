@@ -50,7 +50,7 @@ from dfvo.training.config import FlowMode, FlowModelConfig, typed
 from dfvo.training.flow_augment import augment_self_supervised, augment_supervised
 from dfvo.training.flow_data import phase_at
 from dfvo.training.hparams import recorded_config
-from dfvo.training.optimizer import adam
+from dfvo.training.optimizer import adam, clip_gradients, uses_grad_scaler
 from dfvo.training.precision import float32_losses
 from dfvo.training.sampling import step_generator
 from dfvo.vis.colour import flow_to_color, scalar_to_color
@@ -314,8 +314,11 @@ class FlowModule(L.LightningModule):
         """``model.grad_clip_norm`` (global 2-norm) when set, else the trainer's ``gradient_clip_val``."""
         if self.grad_clip_norm is not None:
             gradient_clip_val, gradient_clip_algorithm = self.grad_clip_norm, "norm"
-        self.clip_gradients(optimizer, gradient_clip_val=gradient_clip_val,
-                            gradient_clip_algorithm=gradient_clip_algorithm)
+        if uses_grad_scaler(self._trainer):  # Lightning unscales first (the optimiser is not fused then)
+            self.clip_gradients(optimizer, gradient_clip_val=gradient_clip_val,
+                                gradient_clip_algorithm=gradient_clip_algorithm)
+        elif gradient_clip_val:
+            clip_gradients(self.net.parameters(), gradient_clip_val, str(gradient_clip_algorithm or "norm"))
 
     def lr_at(self, step: int) -> float:
         """Mode ``mixed``: the learning rate of global ``step`` (its phase's rate, x ``lr_gamma`` from
@@ -324,18 +327,20 @@ class FlowModule(L.LightningModule):
         dropped = step - start >= self.lr_drop_fraction * phase.steps
         return phase.lr * (self.lr_gamma if dropped else 1.0)
 
-    def _clipped(self) -> bool:
-        """Whether gradients are clipped (``model.grad_clip_norm`` or the trainer's ``gradient_clip_val``)."""
+    def _clipped_through_scaler(self) -> bool:
+        """Whether gradients are clipped through a gradient scaler (``model.grad_clip_norm`` or the trainer's
+        ``gradient_clip_val`` with ``16-mixed``), which the fused Adam cannot follow (dfvo.training.optimizer)."""
         trainer = self._trainer
-        return self.grad_clip_norm is not None or (trainer is not None and trainer.gradient_clip_val is not None)
+        clipped = self.grad_clip_norm is not None or (trainer is not None and trainer.gradient_clip_val is not None)
+        return clipped and uses_grad_scaler(trainer)
 
     def configure_optimizers(self) -> dict[str, Any]:
         if self.mode == FlowMode.mixed.value:
             base = self.lr_at(0)
-            optimizer = adam(self.net.parameters(), base, self.device, clipped=self._clipped())
+            optimizer = adam(self.net.parameters(), base, self.device, clipped=self._clipped_through_scaler())
             scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: self.lr_at(step) / base)
             return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
-        optimizer = adam(self.net.parameters(), self.lr, self.device, clipped=self._clipped())
+        optimizer = adam(self.net.parameters(), self.lr, self.device, clipped=self._clipped_through_scaler())
         scheduler = torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones=self.lr_milestones,
                                                          gamma=self.lr_gamma)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,7 @@ import yaml
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
+from dfvo.io.checkpoint import find_checkpoint
 from dfvo.training.config import data_config, model_config
 from dfvo.training.runner import run_training
 
@@ -197,6 +199,9 @@ def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path:
     assert filled.augment == hinted.augment == paste.augment and filled.w_depth_hints == hinted.w_depth_hints
     rows = model_config(_compose("experiment=depth_paste_hints_rows", f"runs_dir={tmp_path}"))
     assert rows.depth_hints_from_row == 0.667 and rows.distill_where_no_target and rows.teacher == filled.teacher
+    shipped = model_config(_compose("experiment=depth_rows_shipped_teacher", f"runs_dir={tmp_path}"))
+    assert find_checkpoint(shipped.teacher) == REPO / "dfvo" / "checkpoints" / "depth.safetensors"
+    assert replace(shipped, teacher=rows.teacher) == rows  # the rows run but for the teacher
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
     assert small.width_multiplier == 0.5 and small.w_distill > 0
