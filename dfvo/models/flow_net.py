@@ -144,22 +144,6 @@ class CascadeLevel(nn.Module):
         return (patches * weights.unsqueeze(1)).sum(2)
 
 
-def area_pyramid(images: torch.Tensor, sizes: list[torch.Size] | list[tuple[int, int]]) -> list[torch.Tensor]:
-    """``images`` (B,C,H,W) area-averaged to each of ``sizes`` (any order; returned in that order).
-
-    Each size is made from the next larger one already made (or ``images``) when that one's height and width are
-    integer multiples of it -- an average of block averages, the same values as averaging ``images`` directly
-    (up to float rounding) at a fraction of the memory traffic -- else from ``images``."""
-    made: dict[tuple[int, int], torch.Tensor] = {}
-    for size in sorted({tuple(s) for s in sizes}, key=lambda s: -s[0] * s[1]):
-        src = images
-        for (h, w), x in made.items():  # the smallest made level that divides evenly into this size
-            if h % size[0] == 0 and w % size[1] == 0 and h * w < src.shape[-2] * src.shape[-1]:
-                src = x
-        made[size] = src if tuple(src.shape[-2:]) == size else F.interpolate(src, size=size, mode="area")
-    return [made[tuple(s)] for s in sizes]
-
-
 class FlowNet(nn.Module):
     """LiteFlowNet-style flow network.
 
@@ -199,16 +183,17 @@ class FlowNet(nn.Module):
         """Number of multi-scale outputs (one per inferred pyramid level)."""
         return len(self.inferred_levels)
 
-    def _infer(self, feats1: list[torch.Tensor], feats2: list[torch.Tensor], imgs1: list[torch.Tensor],
-               imgs2: list[torch.Tensor]) -> list[torch.Tensor]:
-        """Coarse-to-fine cascade over ``inferred_levels`` (coarsest first), ``imgs1``/``imgs2`` the images at each of
-        those levels' sizes in the same order; returns per-level flows in level pixels, finest first."""
+    def _infer(self, feats1: list[torch.Tensor], feats2: list[torch.Tensor], img1: torch.Tensor,
+               img2: torch.Tensor) -> list[torch.Tensor]:
+        """Coarse-to-fine cascade; returns per-level flows in level pixels, finest first."""
         flows: list[torch.Tensor] = []
         flow = None
-        for lev, block, i1, i2 in zip(self.inferred_levels, self.cascade, imgs1, imgs2):
+        for lev, block in zip(self.inferred_levels, self.cascade):
             f1, f2 = feats1[lev - 1], feats2[lev - 1]
             size = f1.shape[-2:]
             flow = f1.new_zeros(f1.shape[0], 2, *size) if flow is None else resize_flow(flow, size)
+            i1 = F.interpolate(img1, size=size, mode="area")
+            i2 = F.interpolate(img2, size=size, mode="area")
             flow = block(f1, f2, i1, i2, flow)
             flows.append(flow)
         return flows[::-1]
@@ -226,15 +211,16 @@ class FlowNet(nn.Module):
             both = F.interpolate(both, size=(hp, wp), mode="bilinear", align_corners=False)
         feats = self.pyramid(both)
         b = img1.shape[0]
-        images = area_pyramid(both, [feats[lev - 1].shape[-2:] for lev in self.inferred_levels])
+        a, c = both[:b], both[b:]
         if pairs_swapped:  # forward pairs (1,2) and backward pairs (2,1) in one batch of 2B
-            feats1, imgs1 = feats, images
+            feats1 = feats
             feats2 = [torch.cat([f[b:], f[:b]], 0) for f in feats]
-            imgs2 = [torch.cat([i[b:], i[:b]], 0) for i in images]
+            i1, i2 = both, torch.cat([c, a], 0)
         else:
-            feats1, imgs1 = [f[:b] for f in feats], [i[:b] for i in images]
-            feats2, imgs2 = [f[b:] for f in feats], [i[b:] for i in images]
-        flows = self._infer(feats1, feats2, imgs1, imgs2)
+            feats1 = [f[:b] for f in feats]
+            feats2 = [f[b:] for f in feats]
+            i1, i2 = a, c
+        flows = self._infer(feats1, feats2, i1, i2)
         if not all_scales:
             flows = flows[:1]
         return [resize_flow(f, (h, w)) for f in flows]

@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from dfvo.geometry.camera import resize_flow
-from dfvo.models.flow_net import FlowNet, FlowNetConfig, area_pyramid
+from dfvo.models.flow_net import FlowNet, FlowNetConfig
 
 
 @pytest.fixture(scope="module")
@@ -49,8 +49,8 @@ def test_forward_backward_equals_two_calls(net: FlowNet) -> None:
 
 
 def test_non_multiple_of_32_is_resized_and_rescaled(net: FlowNet, monkeypatch: pytest.MonkeyPatch) -> None:
-    """A 50x70 input runs at 64x96 inside (the levels' images area-averaged from it); the finest level flow (16x24,
-    stride 4) is resized straight to 50x70 with u scaled by 70/24 and v by 50/16."""
+    """A 50x70 input runs at 64x96 inside; the finest level flow (16x24, stride 4) is resized straight to 50x70
+    with u scaled by 70/24 and v by 50/16."""
     g = torch.Generator().manual_seed(2)
     a, b = torch.rand(1, 3, 50, 70, generator=g), torch.rand(1, 3, 50, 70, generator=g)
     seen: dict[str, torch.Tensor] = {}
@@ -64,30 +64,14 @@ def test_non_multiple_of_32_is_resized_and_rescaled(net: FlowNet, monkeypatch: p
     monkeypatch.setattr(net, "_infer", spy)
     with torch.no_grad():
         out = net(a, b)
-    for images, x in ((seen["img1"], a), (seen["img2"], b)):  # per inferred level, coarsest first: 4x6 ... 16x24
-        inside = F.interpolate(x, size=(64, 96), mode="bilinear", align_corners=False)
-        assert [tuple(i.shape[-2:]) for i in images] == [(4, 6), (8, 12), (16, 24)]
-        torch.testing.assert_close(images[-1], F.interpolate(inside, size=(16, 24), mode="area"))
+    torch.testing.assert_close(seen["img1"], F.interpolate(a, size=(64, 96), mode="bilinear", align_corners=False))
+    torch.testing.assert_close(seen["img2"], F.interpolate(b, size=(64, 96), mode="bilinear", align_corners=False))
     level = seen["flows"][0]
     assert level.shape == (1, 2, 16, 24)
     expected = F.interpolate(level, size=(50, 70), mode="bilinear", align_corners=False)
     expected = expected * torch.tensor([70 / 24, 50 / 16]).view(1, 2, 1, 1)
     assert out.shape == (1, 2, 50, 70)
     torch.testing.assert_close(out, expected, atol=1e-6, rtol=1e-6)
-
-
-def test_area_pyramid_is_each_level_averaged_from_the_image() -> None:
-    """Each level of the pyramid equals the image block-averaged straight to its size (in float64, to rounding:
-    levels made from a made level are averages of block averages), in the order asked; a size that no made level
-    divides evenly (96x320 -> 24x80 -> 12x40 -> 6x20 -> 3x10 does, 32x100 does not) is averaged from the image, and a
-    hand-made 2x2 block average checks the values."""
-    img = torch.rand(3, 3, 96, 320, dtype=torch.float64)
-    sizes = [(3, 10), (24, 80), (12, 40), (32, 100), (6, 20)]
-    for size, level in zip(sizes, area_pyramid(img, sizes)):
-        assert level.shape == (3, 3, *size)
-        torch.testing.assert_close(level, F.interpolate(img, size=size, mode="area"), rtol=0, atol=1e-12)
-    half = area_pyramid(img, [(48, 160)])[0]
-    torch.testing.assert_close(half[0, 0, 0, 0], img[0, 0, :2, :2].mean(), rtol=0, atol=1e-15)
 
 
 def test_upsample_flow_rescales_vectors() -> None:
