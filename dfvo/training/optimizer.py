@@ -23,9 +23,11 @@ FUSED_DEVICES = ("cpu", "cuda")  # device types with a fused Adam kernel in torc
 
 def adam(params: Iterable[torch.nn.Parameter], lr: float, device: torch.device | str,
          clipped: bool = False) -> torch.optim.Adam:
-    """``torch.optim.Adam(params, lr)``, fused on :data:`FUSED_DEVICES` (the parameters' ``device``) unless the run
-    clips gradients (``clipped``: Lightning's mixed-precision plugin refuses to clip for a fused optimiser, which
-    unscales internally)."""
+    """``torch.optim.Adam(params, lr)``, fused on :data:`FUSED_DEVICES` (the parameters' ``device``) unless
+    ``clipped``: Lightning's precision plugin clips the run's gradients (its mixed-precision plugin refuses a fused
+    optimiser, which would unscale a gradient scaler's gradients only after the clipping). The flow runs clip through
+    it only with a scaler (:func:`uses_grad_scaler`); otherwise they call :func:`clip_gradients` themselves and keep
+    the fused kernel."""
     return torch.optim.Adam(params, lr=lr, fused=torch.device(device).type in FUSED_DEVICES and not clipped)
 
 
