@@ -134,6 +134,11 @@ class DepthModelConfig:
         distill_where_no_target: the teacher only at the pixels that have no other depth target: not where the
             batch's ``depth`` (the worlds' exact depth, pasted objects) or ``depth_hint`` (the stereo matcher's,
             ``data.depth_hints``) is > 0 (false: every pixel but the pasted objects').
+        distill_scale_from_hints: the teacher's depth of each image times the median of stereo hint ÷ teacher over
+            the pixels it teaches that have a hint (``depth_hints_from_row`` does not limit these), so the teacher
+            gives the scene's shape and the stereo matcher its metric scale (an image with fewer than
+            ``dfvo.training.depth_module.MIN_SCALE_PIXELS`` such pixels keeps the teacher's scale). Needs
+            ``data.depth_hints``.
     """
 
     _target_: str = "dfvo.training.depth_module.DepthPoseModule"
@@ -165,6 +170,7 @@ class DepthModelConfig:
     teacher: str | None = None
     w_distill: float = 0.0
     distill_where_no_target: bool = False
+    distill_scale_from_hints: bool = False
 
     def __post_init__(self) -> None:
         if self.task != "depth":
@@ -183,6 +189,9 @@ class DepthModelConfig:
         if self.w_consistency > 0 and not self.temporal:
             raise ValueError("model.w_consistency > 0 needs model.temporal = true (consistency across frames)")
         check_distillation(self.teacher, self.w_distill, "depth")
+        if self.distill_scale_from_hints and self.w_distill <= 0:
+            raise ValueError("model.distill_scale_from_hints=true scales the teacher's depth: it needs model.teacher "
+                             "and model.w_distill > 0")
         if not 0 < self.width_multiplier <= 4:
             raise ValueError(f"model.width_multiplier={self.width_multiplier}; expected a channel multiplier in "
                              "(0, 4] (1: the monodepth2 network; the image width is data.width)")

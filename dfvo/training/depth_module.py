@@ -57,6 +57,19 @@ from dfvo.training.hparams import recorded_config
 from dfvo.training.optimizer import adam
 from dfvo.training.precision import float32_losses
 
+MIN_SCALE_PIXELS = 100  # hinted pixels an image needs before the teacher's scale is fitted to them
+
+
+def teacher_scaled_to_hints(teacher_depth: torch.Tensor, hints: torch.Tensor) -> torch.Tensor:
+    """``teacher_depth`` (B,1,H,W, metres; <= 0: no target) of each image times the median of ``hints`` (B,1,H,W,
+    the stereo matcher's depth; <= 0: none) ÷ ``teacher_depth`` over the pixels where both are > 0; an image with
+    fewer than :data:`MIN_SCALE_PIXELS` such pixels is left as it is (``model.distill_scale_from_hints``)."""
+    both = (teacher_depth > 0) & (hints > 0)
+    ratio = torch.where(both, hints / teacher_depth.clamp_min(1e-6), torch.nan).flatten(1)
+    scale = ratio.nanmedian(1).values
+    scale = torch.where(both.flatten(1).sum(1) >= MIN_SCALE_PIXELS, scale, torch.ones_like(scale))
+    return teacher_depth * scale.view(-1, 1, 1, 1)
+
 
 class DepthPoseModule(L.LightningModule):
     """Train :class:`DepthNet` (and :class:`PoseNet` when temporal views are used). Task ``"depth"``.
@@ -95,10 +108,12 @@ class DepthPoseModule(L.LightningModule):
         self.augment_seed = int(cfg.data.seed) if "data" in cfg else 0
         # a batch of synthetic samples alone has no hints (a mixed batch has 0, none, on its worlds' samples)
         self.hints_on_real_samples_only = "data" in cfg and cfg.data.get("kind") == "kitti_raw_synthetic"
-        if self.w_depth_hints > 0 and "data" in cfg and cfg.data.get("kind") in ("kitti_raw", "kitti_raw_synthetic") \
-                and not cfg.data.get("depth_hints", False):
-            raise ValueError(f"model.w_depth_hints={self.w_depth_hints} needs the stereo matcher's hints: set "
-                             f"data.depth_hints=true (data={cfg.data.get('kind')})")
+        real = "data" in cfg and cfg.data.get("kind") in ("kitti_raw", "kitti_raw_synthetic")
+        for setting, on in ((f"model.w_depth_hints={self.w_depth_hints}", self.w_depth_hints > 0),
+                            ("model.distill_scale_from_hints=true", m.distill_scale_from_hints)):
+            if on and real and not cfg.data.get("depth_hints", False):
+                raise ValueError(f"{setting} needs the stereo matcher's hints: set data.depth_hints=true "
+                                 f"(data={cfg.data.get('kind')})")
         if self.augment is not None and self.augment.paste_prob > 0 and "data" in cfg:
             height = cfg.data.get("camera_height")
             if not self.stereo or height is None:
@@ -199,6 +214,7 @@ class DepthPoseModule(L.LightningModule):
         image = batch["image"]
         B = image.shape[0]
         net = net_inputs or {}
+        all_hints = batch.get("depth_hint")  # every row's, for the teacher's scale (distill_scale_from_hints)
         batch = self._hints_from_row(batch)
         sources = self._sources(batch, net)
         temporal = [s for s in sources if s[0] != "stereo"]
@@ -217,6 +233,8 @@ class DepthPoseModule(L.LightningModule):
                     for key in ("depth", "depth_hint"):
                         if key in batch:
                             teacher_depth = teacher_depth.masked_fill(batch[key] > 0, 0.0)
+                if self.model_cfg.distill_scale_from_hints and all_hints is not None:  # (a batch of worlds has none)
+                    teacher_depth = teacher_scaled_to_hints(teacher_depth, all_hints)
         if self.w_consistency > 0:
             keys = {"prev": "image_prev", "next": "image_next"}
             views = [depth_input] + [net.get(keys[s[0]], s[1]) for s in temporal]

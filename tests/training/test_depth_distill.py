@@ -252,6 +252,46 @@ def test_hints_can_be_kept_to_the_lower_rows_with_the_teacher_above(tmp_path: Pa
         module(1.0)
 
 
+def test_the_teacher_can_take_the_stereo_hints_scale(tmp_path: Path, sample: dict) -> None:
+    """``model.distill_scale_from_hints``: with hints 1.3x the teacher's depth on every row and ``depth_hints_from_row``
+    2/3, a student that is the teacher sees its distillation term become log 1.3 on the rows above (the teacher's
+    depth x the median hint / teacher there, which is 1.3), where without the setting it is ~0; the hints of the
+    rows below, which the hint term takes, do not count twice; a batch without hints keeps the teacher's scale. The
+    per-image scale: the median over the pixels with both, 1 for an image with too few."""
+    from dfvo.training.depth_module import MIN_SCALE_PIXELS, teacher_scaled_to_hints
+
+    teacher_net, path = _teacher(tmp_path, 11)
+    settings = {"w_depth_hints": 1.0, "distill_where_no_target": True, "depth_hints_from_row": 2 / 3}
+    plain, scaled = _module(path, 1.0, **settings), _module(path, 1.0, distill_scale_from_hints=True, **settings)
+    for module in (plain, scaled):
+        module.depth_net.load_state_dict(teacher_net.state_dict())
+    with torch.no_grad():
+        hint = 1.3 * teacher_net.depth(sample["image"])
+        _, same, _ = plain._losses({**sample, "depth_hint": hint}, None)
+        _, taught, _ = scaled._losses({**sample, "depth_hint": hint}, None)
+    assert float(same["distill_s0"]) < 1e-5
+    assert float(taught["distill_s0"]) == pytest.approx(float(torch.tensor(1.3).log()), rel=1e-3)
+    unhinted_module = _module(path, 1.0, distill_scale_from_hints=True, distill_where_no_target=True)
+    unhinted_module.depth_net.load_state_dict(teacher_net.state_dict())
+    with torch.no_grad():  # a batch without hints (a batch of synthetic worlds): the teacher's own scale
+        _, unhinted, _ = unhinted_module._losses(sample, None)
+    assert float(unhinted["distill_s0"]) < 1e-5
+
+    teacher = torch.full((2, 1, 4, 50), 10.0)
+    hints = torch.zeros(2, 1, 4, 50)
+    hints[0, :, :3] = torch.linspace(5.0, 40.0, 150).view(3, 50)  # median ~22.5 over 150 pixels: x2.25
+    hints[1, :, 0, : MIN_SCALE_PIXELS // 4] = 30.0  # too few pixels: x1
+    out = teacher_scaled_to_hints(teacher.masked_fill(torch.arange(4).view(1, 1, 4, 1) == 3, 0.0), hints)
+    assert float(hints[0, :, :3].median()) == pytest.approx(22.5, abs=0.15)
+    torch.testing.assert_close(out[0, :, :3], torch.full((1, 3, 50), float(hints[0, :, :3].median())))  # 10 x 2.25
+    assert float(out[0, :, 3].abs().max()) == 0.0  # no target stays no target
+    torch.testing.assert_close(out[1, :, :3], torch.full((1, 3, 50), 10.0))
+    with pytest.raises(ValueError, match="distill_scale_from_hints"):
+        from dfvo.training.config import DepthModelConfig
+
+        DepthModelConfig(name="depth_stereo", distill_scale_from_hints=True)
+
+
 def test_distillation_settings_are_checked() -> None:
     """w_distill without a teacher, a teacher without a weight, a channel multiplier that is an image width: one line
     naming the key."""
