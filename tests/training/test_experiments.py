@@ -202,6 +202,8 @@ def test_campaign_followups_read_their_predecessors_in_the_runs_folder(tmp_path:
     shipped = model_config(_compose("experiment=depth_rows_shipped_teacher", f"runs_dir={tmp_path}"))
     assert find_checkpoint(shipped.teacher) == REPO / "dfvo" / "checkpoints" / "depth.safetensors"
     assert replace(shipped, teacher=rows.teacher) == rows  # the rows run but for the teacher
+    scaled = model_config(_compose("experiment=depth_rows_scaled_teacher", f"runs_dir={tmp_path}"))
+    assert replace(scaled, distill_scale_from_hints=False) == shipped and scaled.distill_scale_from_hints
     small = model_config(_compose("experiment=depth_small", "runs_dir='~/some-runs'"))
     assert small.teacher == str(Path.home() / "some-runs" / "depth_scene_shadow" / "weights.safetensors")
     assert small.width_multiplier == 0.5 and small.w_distill > 0
