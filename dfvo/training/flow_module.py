@@ -318,7 +318,7 @@ class FlowModule(L.LightningModule):
             self.clip_gradients(optimizer, gradient_clip_val=gradient_clip_val,
                                 gradient_clip_algorithm=gradient_clip_algorithm)
         elif gradient_clip_val:
-            clip_gradients(self.net.parameters(), gradient_clip_val, str(gradient_clip_algorithm or "norm"))
+            clip_gradients(self.net.parameters(), gradient_clip_val, gradient_clip_algorithm or "norm")
 
     def lr_at(self, step: int) -> float:
         """Mode ``mixed``: the learning rate of global ``step`` (its phase's rate, x ``lr_gamma`` from

@@ -39,7 +39,8 @@ def uses_grad_scaler(trainer: object | None) -> bool:
 
 def clip_gradients(params: Iterable[torch.nn.Parameter], value: float, algorithm: str = "norm") -> None:
     """Clip the gradients of ``params`` in place: their global 2-norm to ``value`` (``algorithm="norm"``) or each
-    element to ``[-value, value]`` (``"value"``), as Lightning's ``clip_gradients`` does for unscaled gradients."""
+    element to ``[-value, value]`` (``"value"``), as Lightning's ``clip_gradients`` does for unscaled gradients;
+    ``algorithm`` may be Lightning's ``GradClipAlgorithmType``, a string enum equal to those names."""
     if algorithm == "norm":
         torch.nn.utils.clip_grad_norm_(params, value)
     elif algorithm == "value":

@@ -117,20 +117,23 @@ def test_one_lightning_step_equals_the_reference_step(tmp_path: Path, world: dic
     assert any((a - b).abs().max() > 0 for a, b in zip(module.net.parameters(), FlowModule(cfg).net.parameters()))
 
 
-@pytest.mark.parametrize("precision", ["32-true", "bf16-mixed"])
-def test_clipping_acts_with_the_fused_optimiser(tmp_path: Path, world: dict, precision: str) -> None:
+@pytest.mark.parametrize("precision,by_trainer", [("32-true", False), ("bf16-mixed", False), ("bf16-mixed", True)])
+def test_clipping_acts_with_the_fused_optimiser(tmp_path: Path, world: dict, precision: str, by_trainer: bool) -> None:
     """A clipped flow run steps with the fused Adam (no gradient scaler in fp32 or bf16; Lightning's bf16 plugin
     would refuse to clip for it) and its gradients reach the optimiser with the global norm clipped (0.05 here,
-    below this step's norm: the previous test's batch). The step's gradients stay on the parameters after it."""
+    below this step's norm: the previous test's batch), set by ``model.grad_clip_norm`` or by the trainer's
+    ``gradient_clip_val`` with ``gradient_clip_algorithm`` named (Lightning passes it on as an enum). The step's
+    gradients stay on the parameters after it."""
     pairs = SyntheticPairs([world])
     batch = {"step": torch.tensor(0), "sup": pairs.take(torch.tensor([0, 3, 5, 1])),
              "self": {k: v for k, v in pairs.take(torch.tensor([2, 4])).items() if k in ("image", "image_next")}}
     cfg = _cfg(tmp_path, "model.phases=[{name: mix, steps: 5, lr: 2.0e-5, kitti: true}]", "data.seed=7",
-               "model.grad_clip_norm=0.05")
+               f"model.grad_clip_norm={'null' if by_trainer else 0.05}")
     module = FlowModule(cfg)
     trainer = L.Trainer(max_steps=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, accelerator="cpu", devices=1, limit_val_batches=0,
-                        precision=precision)
+                        precision=precision, gradient_clip_val=0.05 if by_trainer else None,
+                        gradient_clip_algorithm="norm" if by_trainer else None)
     trainer.fit(module, DataLoader([batch], batch_size=None))
     assert trainer.optimizers[0].defaults["fused"]
     grads = [p.grad for p in module.net.parameters() if p.grad is not None]
