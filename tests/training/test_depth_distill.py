@@ -257,7 +257,8 @@ def test_the_teacher_can_take_the_stereo_hints_scale(tmp_path: Path, sample: dic
     2/3, a student that is the teacher sees its distillation term become log 1.3 on the rows above (the teacher's
     depth x the median hint / teacher there, which is 1.3), where without the setting it is ~0; the hints of the
     rows below, which the hint term takes, do not count twice; a batch without hints keeps the teacher's scale. The
-    per-image scale: the median over the pixels with both, 1 for an image with too few."""
+    per-image scale: the median over the pixels with both, 1 for an image with too few. (Without a teacher the
+    setting is refused: test_distillation_settings_are_checked.)"""
     from dfvo.training.depth_module import MIN_SCALE_PIXELS, teacher_scaled_to_hints
 
     teacher_net, path = _teacher(tmp_path, 11)
@@ -286,19 +287,17 @@ def test_the_teacher_can_take_the_stereo_hints_scale(tmp_path: Path, sample: dic
     torch.testing.assert_close(out[0, :, :3], torch.full((1, 3, 50), float(hints[0, :, :3].median())))  # 10 x 2.25
     assert float(out[0, :, 3].abs().max()) == 0.0  # no target stays no target
     torch.testing.assert_close(out[1, :, :3], torch.full((1, 3, 50), 10.0))
-    with pytest.raises(ValueError, match="distill_scale_from_hints"):
-        from dfvo.training.config import DepthModelConfig
-
-        DepthModelConfig(name="depth_stereo", distill_scale_from_hints=True)
 
 
 def test_distillation_settings_are_checked() -> None:
-    """w_distill without a teacher, a teacher without a weight, a channel multiplier that is an image width: one line
-    naming the key."""
+    """w_distill without a teacher, a teacher without a weight, the teacher's scale from hints without a teacher, a
+    channel multiplier that is an image width: one line naming the key."""
     from dfvo.training.config import DepthModelConfig
 
     with pytest.raises(ValueError, match="model.w_distill=1.0 needs model.teacher"):
         DepthModelConfig(name="depth_stereo", w_distill=1.0)
+    with pytest.raises(ValueError, match="model.distill_scale_from_hints=true scales the teacher's depth"):
+        DepthModelConfig(name="depth_stereo", distill_scale_from_hints=True)
     with pytest.raises(ValueError, match="model.width_multiplier=320"):
         DepthModelConfig(name="depth_stereo", width_multiplier=320)
     with pytest.raises(ValueError, match="model.teacher=t.safetensors has no effect"):
